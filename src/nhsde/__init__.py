@@ -1,0 +1,21 @@
+"""nhsde: stochastic nonholonomic mechanics in JAX.
+
+Scenes build a :class:`StochasticSystem` (the Itô SDE of S0 (1.15)); :func:`simulate`
+integrates vmapped ensembles on diffrax; :mod:`nhsde.statistics` turns them into
+drift statistics, differentiable in every physical parameter.
+"""
+
+from . import noise as noise
+from . import scenes as scenes
+from . import statistics as statistics
+from ._params import AbstractParameters as AbstractParameters
+from ._params import parameter as parameter
+from ._simulate import SOLVERS as SOLVERS
+from ._simulate import Ensemble as Ensemble
+from ._simulate import Save as Save
+from ._simulate import SimulationError as SimulationError
+from ._simulate import simulate as simulate
+from ._system import StateLayout as StateLayout
+from ._system import StochasticSystem as StochasticSystem
+
+__version__ = "0.1.0"

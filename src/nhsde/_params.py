@@ -1,0 +1,107 @@
+"""Physical parameters as pytree leaves, with their allowed ranges.
+
+Every physical constant of a scene — friction ``eps``, noise intensity ``nu``,
+masses, radii — is a leaf of an :class:`AbstractParameters` module, never a
+static field and never closed over, so ``jax.grad``/``jax.jacfwd`` reach it.
+Each leaf declares its range with :func:`parameter`; concrete values are checked
+when the module is built (``ValueError`` naming the argument, the value and the
+range), traced values are checked at run time with ``eqx.error_if`` by
+:meth:`AbstractParameters.validated`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["AbstractParameters", "parameter"]
+
+
+def parameter(*, default, lower: float | None = None, strict: bool = False, doc: str = ""):
+    """A parameter leaf that must be finite and ``≥ lower`` (``> lower`` if ``strict``)."""
+    return eqx.field(
+        default=default,
+        converter=jnp.asarray,
+        metadata={"lower": lower, "strict": strict, "doc": doc},
+    )
+
+
+def _range_text(lower, strict) -> str:
+    if lower is None:
+        return "finite"
+    return f"finite and {'>' if strict else '≥'} {lower:g}"
+
+
+def _concrete(value) -> np.ndarray | None:
+    try:
+        return np.asarray(value)
+    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+        return None
+
+
+class AbstractParameters(eqx.Module):
+    """Base class of a scene's parameters; subclasses declare leaves with :func:`parameter`."""
+
+    @classmethod
+    def describe(cls) -> list[tuple[str, object, str, str]]:
+        """``(name, default, allowed range, doc)`` for each declared parameter."""
+        rows = []
+        for f in dataclasses.fields(cls):
+            if "lower" in f.metadata:
+                rows.append(
+                    (f.name, f.default, _range_text(f.metadata["lower"], f.metadata["strict"]), f.metadata["doc"])
+                )
+        return rows
+
+    def __check_init__(self):
+        for f in dataclasses.fields(self):
+            if "lower" not in f.metadata:
+                continue
+            value = _concrete(getattr(self, f.name))
+            if value is None:
+                continue  # traced: checked by `validated` at run time
+            lower, strict = f.metadata["lower"], f.metadata["strict"]
+            ok = np.all(np.isfinite(value))
+            if ok and lower is not None:
+                ok = np.all(value > lower) if strict else np.all(value >= lower)
+            if not ok:
+                raise ValueError(
+                    f"{type(self).__name__}: parameter {f.name}={value.tolist()!r} is not allowed; "
+                    f"{f.name} must be {_range_text(lower, strict)}."
+                )
+
+    def validated(self):
+        """The same parameters, with run-time range checks attached to traced leaves."""
+        out = self
+        for f in dataclasses.fields(self):
+            if "lower" not in f.metadata:
+                continue
+            value = getattr(self, f.name)
+            if _concrete(value) is not None:
+                continue
+            lower, strict = f.metadata["lower"], f.metadata["strict"]
+            bad = ~jnp.isfinite(value)
+            if lower is not None:
+                bad = bad | ((value <= lower) if strict else (value < lower))
+            checked = eqx.error_if(
+                value,
+                jnp.any(bad),
+                f"{type(self).__name__}: parameter {f.name} must be {_range_text(lower, strict)}.",
+            )
+            out = eqx.tree_at(lambda p, n=f.name: getattr(p, n), out, checked)
+        return out
+
+    def replace(self, **changes):
+        """A copy with some parameters changed (and re-checked)."""
+        unknown = sorted(set(changes) - {f.name for f in dataclasses.fields(self)})
+        if unknown:
+            allowed = ", ".join(name for name, *_ in self.describe())
+            raise TypeError(f"{type(self).__name__} has no parameter {unknown[0]!r}; parameters: {allowed}.")
+        return dataclasses.replace(self, **changes)
+
+

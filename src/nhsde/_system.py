@@ -1,0 +1,163 @@
+"""The stochastic system every part of nhsde consumes: S0 (1.15).
+
+``dZ = a(Z, t; θ) dt + b(Z, t; θ) dW`` with ``W`` a standard Wiener process of
+dimension ``noise_dim``.  S0 writes the noise as white noise ``V = dW/dt`` of
+intensity ``ν``, ``E[V(t) V(s)ᵀ] = ν δ(t − s)``; nhsde folds ``√ν`` into ``b``,
+so ``b`` here is S0's ``b·√ν`` and ``W`` has unit intensity.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float, PyTree
+
+__all__ = ["ROLES", "StateLayout", "StochasticSystem"]
+
+ROLES = (
+    "random_parameter",  # π of S0 (1.2): shaping-filter states of coloured noise
+    "independent_coordinate",  # q'
+    "dependent_coordinate",  # q'': positions whose statistics are the drift
+    "momentum",  # p' of the Hamiltonian form (1.13)
+    "velocity",  # q̇' of the Lagrangian form (1.12)
+)
+
+
+class StateLayout(eqx.Module):
+    """Names and roles of the state components, in order."""
+
+    names: tuple[str, ...]
+    roles: tuple[str, ...]
+
+    def __check_init__(self):
+        if len(self.names) != len(self.roles):
+            raise ValueError(f"StateLayout: {len(self.names)} names but {len(self.roles)} roles.")
+        if len(set(self.names)) != len(self.names):
+            raise ValueError(f"StateLayout: duplicate state names in {self.names}.")
+        for role in self.roles:
+            if role not in ROLES:
+                raise ValueError(f"StateLayout: unknown role {role!r}; roles are {ROLES}.")
+
+    @property
+    def size(self) -> int:
+        return len(self.names)
+
+    def indices(self, role: str) -> tuple[int, ...]:
+        if role not in ROLES:
+            raise ValueError(f"unknown role {role!r}; roles are {ROLES}.")
+        return tuple(i for i, r in enumerate(self.roles) if r == role)
+
+    def index(self, name: str) -> int:
+        if name not in self.names:
+            raise ValueError(f"no state component {name!r}; the state is {self.names}.")
+        return self.names.index(name)
+
+
+VectorField = Callable[[Float[Array, ""], Float[Array, " d"], PyTree], Array]
+
+
+class _ItoStratonovichDrift(eqx.Module):
+    """``a ∓ ½ Σ_j (∂b_j/∂Z) b_j``: Itô → Stratonovich (sign −1) or back (+1)."""
+
+    drift: VectorField
+    diffusion: VectorField
+    sign: float
+
+    def __call__(self, t, y, params):
+        b = self.diffusion(t, y, params)
+        # (∂b/∂Z · b)_i = Σ_{j,k} ∂b_ij/∂Z_k b_kj; jvp of Z ↦ b(Z) e_j along b_j per column.
+        eye = jnp.eye(b.shape[1], dtype=b.dtype)
+        cols = jax.vmap(
+            lambda e, bj: jax.jvp(lambda z: self.diffusion(t, z, params) @ e, (y,), (bj,))[1]
+        )(eye, b.T)
+        return self.drift(t, y, params) + self.sign * 0.5 * jnp.sum(cols, axis=0)
+
+
+class StochasticSystem(eqx.Module):
+    """An Itô (or Stratonovich) SDE ``dZ = a dt + b dW``, S0 (1.15).
+
+    - ``drift(t, y, params) -> (d,)`` is ``a``; ``diffusion(t, y, params) -> (d, m)``
+      is ``b`` (with S0's ``√ν`` folded in).  Both are pure functions with
+      diffrax's ``f(t, y, args)`` signature; ``params`` is passed as ``args``.
+    - ``params`` holds every physical parameter (``eps``, ``nu``, …) as a leaf.
+    - ``layout`` names the state components and their roles (π, q', q'', p', q̇').
+    - ``observables`` are extra named outputs ``f(t, y, params) -> ()`` computed
+      from the state on request (e.g. the ball's angular velocity), so they cost
+      no state.
+    - ``additive_noise`` declares that ``b`` does not depend on ``y``, which
+      admits additive-noise solvers and makes Itô and Stratonovich coincide.
+    """
+
+    drift_fn: VectorField = eqx.field(static=True)
+    diffusion_fn: VectorField = eqx.field(static=True)
+    params: PyTree
+    layout: StateLayout = eqx.field(static=True)
+    noise_dim: int = eqx.field(static=True)
+    interpretation: Literal["ito", "stratonovich"] = eqx.field(static=True, default="ito")
+    additive_noise: bool = eqx.field(static=True, default=False)
+    observables: tuple[tuple[str, Callable], ...] = eqx.field(static=True, default=())
+
+    def __check_init__(self):
+        if self.interpretation not in ("ito", "stratonovich"):
+            raise ValueError(
+                f"interpretation={self.interpretation!r}; allowed: 'ito' or 'stratonovich'."
+            )
+        if self.noise_dim < 1:
+            raise ValueError(f"noise_dim={self.noise_dim}; must be ≥ 1.")
+        clash = set(self.layout.names) & {name for name, _ in self.observables}
+        if clash:
+            raise ValueError(f"observable names {sorted(clash)} clash with state names.")
+
+    @property
+    def state_dim(self) -> int:
+        return self.layout.size
+
+    def drift(self, t, y, args):
+        return self.drift_fn(t, y, args)
+
+    def diffusion(self, t, y, args):
+        return self.diffusion_fn(t, y, args)
+
+    def observable_names(self) -> tuple[str, ...]:
+        return self.layout.names + tuple(name for name, _ in self.observables)
+
+    def observe(self, names: tuple[str, ...]) -> Callable:
+        """``f(t, y, params) -> (len(names),)`` evaluating state components or observables."""
+        table = dict(self.observables)
+        for name in names:
+            if name not in self.layout.names and name not in table:
+                raise ValueError(
+                    f"save: unknown name {name!r}; this system offers {self.observable_names()}."
+                )
+
+        def fn(t, y, params):
+            return jnp.stack(
+                [y[self.layout.index(n)] if n in self.layout.names else table[n](t, y, params) for n in names]
+            )
+
+        return fn
+
+    def converted(self, interpretation: Literal["ito", "stratonovich"]) -> StochasticSystem:
+        """The same process written in the other calculus.
+
+        Stratonovich drift = Itô drift − ½ Σ_j (∂b_j/∂Z) b_j (S0 §2, Remark).
+        Additive noise needs no correction and returns ``self`` relabelled.
+        """
+        if interpretation not in ("ito", "stratonovich"):
+            raise ValueError(f"interpretation={interpretation!r}; allowed: 'ito' or 'stratonovich'.")
+        if interpretation == self.interpretation:
+            return self
+        drift = self.drift_fn
+        if not self.additive_noise:
+            sign = -1.0 if interpretation == "stratonovich" else 1.0
+            drift = _ItoStratonovichDrift(self.drift_fn, self.diffusion_fn, sign)
+        return dataclasses.replace(self, drift_fn=drift, interpretation=interpretation)
+
+    def replace_params(self, **changes) -> StochasticSystem:
+        """A copy with some physical parameters changed (``eps=…, nu=…``)."""
+        return eqx.tree_at(lambda s: s.params, self, self.params.replace(**changes))

@@ -1,0 +1,101 @@
+"""Chaplygin sleigh with viscous friction and random force and torque.
+
+A body of mass ``m`` and central inertia ``I`` slides on a knife edge at ``P``, a
+distance ``a`` behind the centre of mass along the body axis ``e1``; ``P`` has no
+velocity across ``e1``.  With ``v`` the speed of ``P`` along ``e1``, ``ω`` the
+angular velocity and ``J = I + m a²`` (eliminating the constraint reaction from
+the momentum balance of the centre of mass and the moment balance about it):
+
+    v̇ = a ω² − 2ε v + V₁/√m,     ω̇ = −(m a/J) v ω − 2ε ω + V₂/√J,
+    ẋ = v cos θ,   ẏ = v sin θ,   θ̇ = ω,
+
+with ``V`` white noise of intensity ``ν`` (random force along the knife and
+random torque, scaled so that friction is proportional to ``bbᵀ``, the form of
+S0 Statement 1).  Energy ``H = ½(m v² + J ω²)`` is conserved at ``ε = ν = 0``, but
+the flow compresses phase volume (``div = −(m a/J) v``): no invariant measure,
+and a nonlinear scene for the drift statistics of the contact point ``(x, y)``.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import equinox as eqx
+import jax.numpy as jnp
+
+from .._params import AbstractParameters, parameter
+from .._system import StateLayout, StochasticSystem
+
+__all__ = ["ChaplyginSleigh", "SleighParameters"]
+
+
+class SleighParameters(AbstractParameters):
+    eps: jnp.ndarray = parameter(default=0.1, lower=0.0, doc="friction ε, 1/s")
+    nu: jnp.ndarray = parameter(default=1.0, lower=0.0, doc="intensity ν of the random force and torque")
+    mass: jnp.ndarray = parameter(default=1.0, lower=0.0, strict=True, doc="mass m")
+    inertia: jnp.ndarray = parameter(default=1.0, lower=0.0, strict=True, doc="central moment of inertia I")
+    offset: jnp.ndarray = parameter(default=1.0, lower=0.0, doc="distance a from the centre of mass to the knife")
+
+
+def _velocity_drift(v, w, p):
+    j = p.inertia + p.mass * p.offset**2
+    return jnp.stack([p.offset * w**2 - 2 * p.eps * v, -(p.mass * p.offset / j) * v * w - 2 * p.eps * w])
+
+
+def _velocity_noise(p, dtype):
+    j = p.inertia + p.mass * p.offset**2
+    return jnp.sqrt(p.nu) * jnp.diag(jnp.stack([1 / jnp.sqrt(p.mass), 1 / jnp.sqrt(j)]).astype(dtype))
+
+
+def _drift_full(t, y, p):
+    theta, v, w = y[2], y[3], y[4]
+    return jnp.concatenate([jnp.stack([v * jnp.cos(theta), v * jnp.sin(theta), w]), _velocity_drift(v, w, p)])
+
+
+def _diffusion_full(t, y, p):
+    return jnp.concatenate([jnp.zeros((3, 2), y.dtype), _velocity_noise(p, y.dtype)])
+
+
+def _drift_reduced(t, y, p):
+    return _velocity_drift(y[0], y[1], p)
+
+
+def _diffusion_reduced(t, y, p):
+    return _velocity_noise(p, y.dtype)
+
+
+class ChaplyginSleigh(eqx.Module):
+    """Scene: the noisy Chaplygin sleigh.
+
+    ``drift=True`` keeps the contact point ``(x, y)`` and heading ``θ`` in the
+    state; otherwise the state is ``(v, ω)`` alone (their dynamics do not involve
+    the position).
+    """
+
+    params: SleighParameters
+    drift: bool = eqx.field(static=True)
+
+    Parameters: ClassVar[type[SleighParameters]] = SleighParameters
+
+    def __init__(self, *, drift: bool = True, **params):
+        self.params = SleighParameters(**params)
+        self.drift = bool(drift)
+
+    def build(self) -> StochasticSystem:
+        if self.drift:
+            layout = StateLayout(
+                ("x", "y", "theta", "v", "omega"),
+                ("dependent_coordinate", "dependent_coordinate", "independent_coordinate", "velocity", "velocity"),
+            )
+            drift, diffusion = _drift_full, _diffusion_full
+        else:
+            layout = StateLayout(("v", "omega"), ("velocity", "velocity"))
+            drift, diffusion = _drift_reduced, _diffusion_reduced
+        return StochasticSystem(
+            drift_fn=drift, diffusion_fn=diffusion, params=self.params, layout=layout, noise_dim=2, additive_noise=True
+        )
+
+    def initial_state(self):
+        """Moving straight ahead at unit speed from the origin."""
+        y = jnp.zeros(5 if self.drift else 2)
+        return y.at[3 if self.drift else 0].set(1.0)
