@@ -275,10 +275,23 @@ def _adaptive_chunk(system, params, cfg, y0, key, chunk_index):
 # ----------------------------------------------------------------------------- moments
 
 
-def _sums(obs, valid, shift):
-    z = jnp.where(valid[:, None, None], obs - shift, 0.0)
-    zz = jnp.einsum("cni,cnj->cnij", z, z)
-    return (jnp.sum(z, 0), jnp.sum(zz, 0), jnp.sum(zz * zz, 0), jnp.sum(valid))
+def _sums(obs, valid, shift, carry):
+    """Add one chunk's moment sums to ``carry``, block by block in path order.
+
+    Each block of ``BLOCK`` paths is reduced by the same fixed-shape loop body
+    and the blocks are added sequentially, so every addition happens in the same
+    order for any chunk size: the statistics are bitwise chunk-independent.
+    """
+
+    def add(acc, block):
+        obs_b, valid_b = block
+        z = jnp.where(valid_b[:, None, None], obs_b - shift, 0.0)
+        zz = jnp.einsum("cni,cnj->cnij", z, z)
+        new = (jnp.sum(z, 0), jnp.sum(zz, 0), jnp.sum(zz * zz, 0), jnp.sum(valid_b))
+        return jax.tree_util.tree_map(jnp.add, acc, new), None
+
+    blocks = (obs.reshape(-1, BLOCK, *obs.shape[1:]), valid.reshape(-1, BLOCK))
+    return jax.lax.scan(add, carry, blocks)[0]
 
 
 def _safe_sqrt(v):
@@ -289,6 +302,10 @@ def _safe_sqrt(v):
 @eqx.filter_jit
 def _run(system: StochasticSystem, y0, key, cfg: _Config):
     params = system.params.validated() if hasattr(system.params, "validated") else system.params
+    # Compute in the state's precision: float leaves follow y0's dtype.
+    params = jax.tree_util.tree_map(
+        lambda p: p.astype(y0.dtype) if jnp.issubdtype(jnp.result_type(p), jnp.floating) else p, params
+    )
     chunk_fn = _adaptive_chunk if cfg.adaptive else _fixed_chunk
     total = cfg.n_chunks * cfg.chunk
     if cfg.per_path_y0:
@@ -303,15 +320,21 @@ def _run(system: StochasticSystem, y0, key, cfg: _Config):
         return obs, bad, valid
 
     obs0, bad0, valid0 = chunk(0)
-    count0 = jnp.maximum(jnp.sum(valid0), 1)
-    # Shift by the first chunk's mean so float32 sums do not cancel.
-    shift = jax.lax.stop_gradient(jnp.sum(jnp.where(valid0[:, None, None], obs0, 0.0), 0) / count0)
-    sums0 = _sums(obs0, valid0, shift)
+    # Sums are taken about the first path, a point within the spread of the
+    # ensemble, so float32 second moments do not cancel.
+    shift = jax.lax.stop_gradient(jnp.where(valid0[0], obs0[0], 0.0))
+    k = obs0.shape[-1]
+    zeros = (
+        jnp.zeros((cfg.n_save, k), obs0.dtype),
+        jnp.zeros((cfg.n_save, k, k), obs0.dtype),
+        jnp.zeros((cfg.n_save, k, k), obs0.dtype),
+        jnp.zeros((), jnp.int32),
+    )
+    sums0 = _sums(obs0, valid0, shift, zeros)
 
     def scan_body(sums, c):
         obs, bad, valid = chunk(c)
-        new = _sums(obs, valid, shift)
-        return jax.tree_util.tree_map(jnp.add, sums, new), (obs if cfg.keep_paths else None, bad)
+        return _sums(obs, valid, shift, sums), (obs if cfg.keep_paths else None, bad)
 
     sums, (obs_rest, bad_rest) = jax.lax.scan(scan_body, sums0, jnp.arange(1, cfg.n_chunks))
     s1, s2, s4, n = sums
