@@ -218,14 +218,14 @@ def _fixed_chunk(system, params, cfg, y0, key, chunk_index):
 
         def body(state, i):
             y, ok = state
-            y1, good = step(y, t0 + (j * per_save + i) * dt, keys, lanes)
+            y1, good = step(y, t0 + (j * per_save + i).astype(dtype) * dt, keys, lanes)
             return (y1, ok & good), None
 
         (y, ok), _ = jax.lax.scan(body, (y, ok), jnp.arange(per_save))
         ok = ok & jnp.all(jnp.isfinite(y), axis=-1)
         if cfg.progress:
             jax.debug.callback(_tick, per_save)
-        return (y, ok), observe(t0 + (j + 1) * per_save * dt, y, params)
+        return (y, ok), observe(t0 + ((j + 1) * per_save).astype(dtype) * dt, y, params)
 
     y = y0.reshape(nb, BLOCK, -1)
     # The offered solvers keep no state between steps; init only runs diffrax's checks.
@@ -287,7 +287,7 @@ def _sums(obs, valid, shift, carry):
         obs_b, valid_b = block
         z = jnp.where(valid_b[:, None, None], obs_b - shift, 0.0)
         zz = jnp.einsum("cni,cnj->cnij", z, z)
-        new = (jnp.sum(z, 0), jnp.sum(zz, 0), jnp.sum(zz * zz, 0), jnp.sum(valid_b))
+        new = (jnp.sum(z, 0), jnp.sum(zz, 0), jnp.sum(zz * zz, 0), jnp.sum(valid_b, dtype=jnp.int32))
         return jax.tree_util.tree_map(jnp.add, acc, new), None
 
     blocks = (obs.reshape(-1, BLOCK, *obs.shape[1:]), valid.reshape(-1, BLOCK))

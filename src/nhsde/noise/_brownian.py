@@ -74,7 +74,7 @@ class CounterBrownianPath(dfx.AbstractBrownianPath):
             raise ValueError("CounterBrownianPath gives increments only: call evaluate(t0, t1).")
         t0 = jax.lax.stop_gradient(t0)
         k0 = jnp.round((t0 - self.t_start) / self.dt).astype(jnp.int32)
-        draws = jax.vmap(self._base_draws)(k0 + jnp.arange(self.substeps))  # (r, n, *shape)
+        draws = jax.vmap(self._base_draws)(k0 + jnp.arange(self.substeps, dtype=jnp.int32))  # (r, n, *shape)
         sqrt_dt = jnp.sqrt(self.dt)
         dw = sqrt_dt * draws[:, 0]
         w = jnp.sum(dw, axis=0)
