@@ -191,11 +191,24 @@ pairs = {"xx": (ix, ix), "xu": (ix, iu), "uu": (iu, iu)}
 mc = {k: np.asarray(ens.cov[:, i, j]) for k, (i, j) in pairs.items()}
 se = {k: np.asarray(ens.cov_se[:, i, j]) for k, (i, j) in pairs.items()}
 z = {k: z_score(mc[k], se[k], closed[k]) for k in pairs}
+# For Gaussian data the sample covariance has Var(k_ij) ≈ (k_ii k_jj + k_ij²)/n: an
+# independent check of the error bars themselves (last column ≈ 1).
+se_gauss = {
+    "xx": np.sqrt(2 * closed["xx"] ** 2 / N_PATHS),
+    "xu": np.sqrt((closed["xx"] * closed["uu"] + closed["xu"] ** 2) / N_PATHS),
+    "uu": np.sqrt(2 * closed["uu"] ** 2 / N_PATHS),
+}
 
-print(f"\n{'t':>5} {'k':>5} {'Monte Carlo':>12} {'± SE':>9} {'closed form':>12} {'(MC-CF)/SE':>11}")
+print(
+    f"\n{'t':>5} {'k':>5} {'Monte Carlo':>12} {'± SE':>9} {'closed form':>12} {'(MC-CF)/SE':>11} "
+    f"{'SE/SE_gauss':>12}"
+)
 for n in range(5, len(ts), 5):
     for k in pairs:
-        print(f"{ts[n]:5.2f} {'k_' + k:>5} {mc[k][n]:12.5f} {se[k][n]:9.5f} {closed[k][n]:12.5f} {z[k][n]:+11.2f}")
+        print(
+            f"{ts[n]:5.2f} {'k_' + k:>5} {mc[k][n]:12.5f} {se[k][n]:9.5f} {closed[k][n]:12.5f} {z[k][n]:+11.2f} "
+            f"{se[k][n] / se_gauss[k][n]:12.2f}"
+        )
 for k in pairs:
     zk = z[k][1:]
     print(f"k_{k}: max |z| over {zk.size} save times = {np.nanmax(np.abs(zk)):.2f}, rms z = {np.sqrt(np.nanmean(zk**2)):.2f}")
@@ -214,7 +227,10 @@ print(
 # line adds the constant term, $\frac{\nu\delta^2}{4\varepsilon^2}(t - \frac{3}{4\varepsilon})$.
 # Bottom row: the deviation in standard errors; about 95 % of the points should
 # lie within ±2 (neighbouring times are strongly correlated, since they share
-# paths).
+# paths).  The column `SE/SE_gauss` above compares `ens.cov_se` with the
+# Gaussian-theory standard error $\sqrt{(k_{ii}k_{jj} + k_{ij}^2)/n}$ computed from
+# the closed forms; it should be close to 1, otherwise the bands are too wide or
+# too narrow.
 
 # %%
 tf = np.linspace(0.0, T1, 400)
@@ -409,6 +425,9 @@ finish(fig, "ball_gradients.png")
 # (`Save(paths=True)`); we compare the histogram with the density and report the
 # sample variance, the excess kurtosis (0 for a Gaussian, SE $\approx\sqrt{24/n}$)
 # and the Kolmogorov–Smirnov distance (5 % critical value $\approx 1.36/\sqrt n$).
+# With the per-path values at hand we also recompute the standard error of the
+# variance directly, $\mathrm{sd}\bigl((u-\bar u)^2\bigr)/\sqrt n$, as a check of
+# `ens.cov_se` (for a Gaussian it is $\approx k_{uu}\sqrt{2/n}$).
 
 # %%
 N_HIST = 4096
@@ -427,6 +446,7 @@ k_uu_t1 = float(ball_covariances(T1, EPS, NU, DELTA)[2])
 
 var_u = u.var(ddof=1)
 var_se = float(ens_u.cov_se[-1, 0, 0])
+var_se_direct = np.std((u - u.mean()) ** 2) / np.sqrt(N_HIST)
 kurt = np.mean((u - u.mean()) ** 4) / u.var() ** 2 - 3.0
 u_sorted = np.sort(u)
 cdf = np.asarray(jax.scipy.stats.norm.cdf(u_sorted, scale=np.sqrt(k_uu_t1)))
@@ -437,6 +457,10 @@ print(f"  mean      {u.mean():+.5f}  (SE {float(ens_u.mean_se[-1, 0]):.5f}; exac
 print(
     f"  variance  {var_u:.5f} ± {var_se:.5f}  vs k_uu(t1) = {k_uu_t1:.5f}  "
     f"ratio {var_u / k_uu_t1:.4f}, {z_score(var_u, var_se, k_uu_t1):+.2f} SE"
+)
+print(
+    f"  SE of the variance: ens.cov_se {var_se:.5f}, direct from the paths {var_se_direct:.5f}, "
+    f"Gaussian k_uu*sqrt(2/n) {k_uu_t1 * np.sqrt(2 / N_HIST):.5f}  (ratio ens/direct {var_se / var_se_direct:.3f})"
 )
 print(f"  excess kurtosis {kurt:+.3f}  (SE ~ {np.sqrt(24 / N_HIST):.3f})")
 print(f"  KS distance {ks:.4f}  (5% critical value ~ {1.36 / np.sqrt(N_HIST):.4f})")

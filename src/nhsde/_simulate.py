@@ -287,11 +287,31 @@ def _sums(obs, valid, shift, carry):
         obs_b, valid_b = block
         z = jnp.where(valid_b[:, None, None], obs_b - shift, 0.0)
         zz = jnp.einsum("cni,cnj->cnij", z, z)
-        new = (jnp.sum(z, 0), jnp.sum(zz, 0), jnp.sum(zz * zz, 0), jnp.sum(valid_b, dtype=jnp.int32))
+        z_zz = jnp.einsum("cni,cnj->cnij", z, z * z)
+        new = (jnp.sum(z, 0), jnp.sum(zz, 0), jnp.sum(z_zz, 0), jnp.sum(zz * zz, 0), jnp.sum(valid_b, dtype=jnp.int32))
         return jax.tree_util.tree_map(jnp.add, acc, new), None
 
     blocks = (obs.reshape(-1, BLOCK, *obs.shape[1:]), valid.reshape(-1, BLOCK))
     return jax.lax.scan(add, carry, blocks)[0]
+
+
+def _central_product_moment(a, m2, m3, m4):
+    """``E[(z_i − a_i)² (z_j − a_j)²]`` from moments about the shift.
+
+    ``a = E z``, ``m2_ij = E z_i z_j``, ``m3_ij = E z_i z_j²``, ``m4_ij = E z_i² z_j²``;
+    the variance of the product of the centred components is this minus ``cov²``.
+    """
+    ai, aj = a[:, :, None], a[:, None, :]
+    d = jnp.diagonal(m2, axis1=1, axis2=2)
+    return (
+        m4
+        - 2 * ai * m3
+        - 2 * aj * jnp.swapaxes(m3, 1, 2)
+        + aj**2 * d[:, :, None]
+        + ai**2 * d[:, None, :]
+        + 4 * ai * aj * m2
+        - 3 * ai**2 * aj**2
+    )
 
 
 def _safe_sqrt(v):
@@ -328,6 +348,7 @@ def _run(system: StochasticSystem, y0, key, cfg: _Config):
         jnp.zeros((cfg.n_save, k), obs0.dtype),
         jnp.zeros((cfg.n_save, k, k), obs0.dtype),
         jnp.zeros((cfg.n_save, k, k), obs0.dtype),
+        jnp.zeros((cfg.n_save, k, k), obs0.dtype),
         jnp.zeros((), jnp.int32),
     )
     sums0 = _sums(obs0, valid0, shift, zeros)
@@ -337,13 +358,13 @@ def _run(system: StochasticSystem, y0, key, cfg: _Config):
         return _sums(obs, valid, shift, sums), (obs if cfg.keep_paths else None, bad)
 
     sums, (obs_rest, bad_rest) = jax.lax.scan(scan_body, sums0, jnp.arange(1, cfg.n_chunks))
-    s1, s2, s4, n = sums
+    s1, s2, s3, s4, n = sums
     nf = n.astype(s1.dtype)
     mean = shift + s1 / nf
     cov = (s2 - jnp.einsum("ni,nj->nij", s1, s1) / nf) / jnp.maximum(nf - 1, 1)
     diag = jnp.diagonal(cov, axis1=1, axis2=2)
     mean_se = _safe_sqrt(diag / nf)
-    cov_se = _safe_sqrt((s4 / nf - (s2 / nf) ** 2) / nf)
+    cov_se = _safe_sqrt((_central_product_moment(s1 / nf, s2 / nf, s3 / nf, s4 / nf) - cov**2) / nf)
     failed = jnp.concatenate([bad0[None], bad_rest]).reshape(-1)[: cfg.n_paths]
     paths = None
     if cfg.keep_paths:

@@ -1,0 +1,152 @@
+"""Solvers: strong order on the ball, Itô/Stratonovich, adaptive steps, determinism, chunking."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import nhsde
+from nhsde import StateLayout, StochasticSystem
+from nhsde.scenes import BallOnVibratingPlane, ChaplyginSleigh, ball_covariances
+
+BALL = BallOnVibratingPlane(eps=1.0, nu=1.0)
+
+
+def strong_slope(system, y0, solver, t1=1.0, n_paths=512):
+    """Log–log slope of the RMS error at t1 against a fine SRA1 solve on the same Brownian path."""
+    fine = 2.0**-11
+
+    def final(name, dt):
+        ens = nhsde.simulate(
+            system, y0, jax.random.key(3), n_paths=n_paths, t1=t1, dt=dt, solver=name,
+            brownian_dt=fine, save=nhsde.Save(n=2, paths=True),
+        )
+        return np.asarray(ens.paths[:, -1])
+
+    reference = final("sra1", fine)
+    dts = [2.0**-k for k in range(3, 8)]
+    errors = [np.sqrt(np.mean(np.sum((final(solver, h) - reference) ** 2, -1))) for h in dts]
+    return np.polyfit(np.log(dts), np.log(errors), 1)[0]
+
+
+# Additive noise: Euler, Milstein and Heun have strong order 1.  SRA1 has order 1.5
+# in general; with a *linear* drift every Itô–Taylor term it leaves out is of
+# mean-square local order ≥ 2.5 (e.g. I_(1,0,0) A²b), so on the ball it is order 2.
+BALL_ORDER = {"euler": 1.0, "milstein": 1.0, "heun": 1.0, "sra1": 2.0}
+
+
+@pytest.mark.parametrize("solver", list(nhsde.SOLVERS))
+def test_strong_order_on_the_ball(solver):
+    y0 = jnp.array([0.0, 0.0, 1.0, -0.5], jnp.float64)
+    slope = strong_slope(BALL.build(), y0, solver)
+    assert abs(slope - BALL_ORDER[solver]) <= 0.15, (solver, slope)
+
+
+@pytest.mark.parametrize("solver", ["euler", "sra1"])
+def test_strong_order_on_the_nonlinear_sleigh(solver):
+    """Nonlinear drift, additive noise: the general orders 1 (Euler) and 1.5 (SRA1)."""
+    scene = ChaplyginSleigh(eps=0.1, nu=1.0)
+    slope = strong_slope(scene.build(), scene.initial_state().astype(jnp.float64), solver, t1=2.0)
+    assert abs(slope - nhsde.SOLVERS[solver].strong_order_additive) <= 0.15, (solver, slope)
+
+
+def gbm(mu=0.3, sigma=0.8):
+    """dX = μX dt + σX dW (Itô): E X(t) = X0 e^{μt}; Stratonovich drift (μ − σ²/2) X."""
+    return StochasticSystem(
+        drift_fn=lambda t, y, p: p["mu"] * y,
+        diffusion_fn=lambda t, y, p: p["sigma"] * y[:, None],
+        params={"mu": jnp.float64(mu), "sigma": jnp.float64(sigma)},
+        layout=StateLayout(("x",), ("independent_coordinate",)),
+        noise_dim=1,
+    )
+
+
+def test_ito_stratonovich_conversion_is_the_drift_correction():
+    system = gbm()
+    strat = system.converted("stratonovich")
+    y = jnp.array([1.7])
+    np.testing.assert_allclose(strat.drift(0.0, y, system.params), (0.3 - 0.8**2 / 2) * y, rtol=1e-14)
+    back = strat.converted("ito")
+    np.testing.assert_allclose(back.drift(0.0, y, system.params), 0.3 * y, rtol=1e-14)
+    assert system.converted("ito") is system
+
+
+@pytest.mark.parametrize("solver", ["euler", "milstein", "heun"])
+def test_every_solver_converges_to_the_ito_solution(solver):
+    """Heun is a Stratonovich solver: simulate converts the Itô system before using it."""
+    ens = nhsde.simulate(
+        gbm(), jnp.array([1.0]), jax.random.key(5), n_paths=8192, t1=1.0, dt=2.0**-8, solver=solver
+    )
+    err = abs(float(ens.mean[-1, 0]) - np.exp(0.3))
+    assert err <= 4 * float(ens.mean_se[-1, 0]), (solver, float(ens.mean[-1, 0]), float(ens.mean_se[-1, 0]))
+
+
+def test_sra1_refuses_state_dependent_noise():
+    with pytest.raises(ValueError, match="additive noise"):
+        nhsde.simulate(gbm(), jnp.array([1.0]), jax.random.key(0), n_paths=8, t1=1.0, dt=0.1, solver="sra1")
+
+
+def test_adaptive_steps_match_closed_form():
+    ens = nhsde.simulate(
+        BALL.build(), BALL.initial_state().astype(jnp.float64), jax.random.key(4), n_paths=1024, t1=2.0,
+        dt=0.05, solver="sra1", adaptive=True, rtol=1e-3, atol=1e-4, save=nhsde.Save(n=3),
+    )
+    k_xx, _, k_uu = ball_covariances(ens.ts, 1.0, 1.0, 1 / 1.4)
+    assert np.all(np.abs(ens.cov[1:, 0, 0] - k_xx[1:]) <= 4 * ens.cov_se[1:, 0, 0])
+    assert np.all(np.abs(ens.cov[1:, 2, 2] - k_uu[1:]) <= 4 * ens.cov_se[1:, 2, 2])
+
+
+def run(key=jax.random.key(11), chunk_size=None, n_paths=300, paths=True):
+    return nhsde.simulate(
+        BALL.build(), BALL.initial_state(), key, n_paths=n_paths, t1=1.0, dt=0.01,
+        chunk_size=chunk_size, save=nhsde.Save(paths=paths),
+    )
+
+
+def test_same_key_gives_bitwise_identical_results():
+    a, b = run(), run()
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        assert np.array_equal(x, y)
+    c = run(key=jax.random.key(12))
+    assert not np.array_equal(a.paths, c.paths)
+
+
+def test_results_independent_of_chunk_size():
+    ref = run(chunk_size=64)
+    for chunk in (128, 320, 4096):
+        other = run(chunk_size=chunk)
+        for x, y in zip(jax.tree_util.tree_leaves(ref), jax.tree_util.tree_leaves(other)):
+            assert np.array_equal(x, y), chunk
+    # the first paths do not depend on how many paths are asked for
+    more = run(n_paths=700)
+    assert np.array_equal(more.paths[:300], ref.paths)
+
+
+def test_paths_are_independent():
+    ens = run(n_paths=2048, paths=True)
+    u = np.asarray(ens.paths[:, -1, 2], np.float64)
+    rho = np.corrcoef(u[:-1], u[1:])[0, 1]  # neighbouring lanes share a random block
+    assert abs(rho) < 4 / np.sqrt(2048)
+
+
+def test_progress_bar_runs(capsys):
+    ens = nhsde.simulate(
+        BALL.build(), BALL.initial_state(), jax.random.key(0), n_paths=64, t1=0.5, dt=0.01, progress=True
+    )
+    assert int(ens.n_failed) == 0
+    assert "64 paths" in capsys.readouterr().err
+
+
+def test_standard_errors_match_the_sample_of_paths():
+    """mean_se and cov_se agree with the standard errors computed from the saved paths."""
+    ens = nhsde.simulate(
+        BALL.build(), BALL.initial_state().astype(jnp.float64), jax.random.key(9), n_paths=4096, t1=3.0,
+        dt=0.01, save=nhsde.Save(n=4, paths=True),
+    )
+    y = np.asarray(ens.paths, np.float64)  # (paths, n, k)
+    d = y - y.mean(0)
+    n = y.shape[0]
+    np.testing.assert_allclose(ens.mean_se, d.std(0, ddof=1) / np.sqrt(n), rtol=1e-9, atol=1e-15)
+    prod = d[:, :, :, None] * d[:, :, None, :]
+    np.testing.assert_allclose(ens.cov_se, prod.std(0) / np.sqrt(n), rtol=1e-3, atol=1e-15)
+    np.testing.assert_allclose(ens.cov, prod.sum(0) / (n - 1), rtol=1e-9, atol=1e-15)
