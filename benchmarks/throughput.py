@@ -505,21 +505,23 @@ def main(argv=None):
         # ---- table
         print(f"\n[{scene}] throughput ({args.steps} steps; traj-steps/s = paths x steps / best time)")
         hdr = (f"  {'implementation':24s} {'mode':15s} {'paths':>6s} {'best s':>9s} {'median s':>9s} "
-               f"{'traj-steps/s':>14s} {'nhsde fwd / this':>17s} {'this / own fwd':>15s}")
+               f"{'traj-steps/s':>14s} {'time vs nhsde fwd':>18s} {'grad / own fwd':>15s}")
         print(hdr)
         print("  " + "-" * (len(hdr) - 2))
         for c in cases:
-            per_fwd = ref.throughput / c.throughput  # how many times slower than nhsde forward, per traj-step
+            # time per trajectory-step relative to nhsde forward (> 1: slower than nhsde forward)
+            per_fwd = ref.throughput / c.throughput
             own = by[c.forward_of] if c.forward_of else None
             grad_ratio = (own.throughput / c.throughput) if own else None
             row = dict(
                 scene=scene, impl=c.impl, mode=c.mode, paths=c.n_paths, steps=c.steps,
                 best_s=c.best, median_s=pystats.median(c.times), times_s=c.times, first_call_s=c.compile_s,
-                traj_steps_per_s=c.throughput, nhsde_fwd_over_this=per_fwd, this_over_own_forward=grad_ratio,
+                traj_steps_per_s=c.throughput, time_per_traj_step_vs_nhsde_forward=per_fwd,
+                grad_time_over_own_forward=grad_ratio,
             )
             all_rows.append(row)
             print(f"  {c.impl:24s} {c.mode:15s} {c.n_paths:6d} {c.best:9.4f} {row['median_s']:9.4f} "
-                  f"{fmt_rate(c.throughput):>14s} {per_fwd:17.2f} "
+                  f"{fmt_rate(c.throughput):>14s} {per_fwd:18.2f} "
                   f"{'' if grad_ratio is None else f'{grad_ratio:.2f}':>15s}")
 
         # ---- targets
@@ -557,10 +559,12 @@ def main(argv=None):
         "rows": all_rows,
         "sanity": sanity,
         "targets": targets,
+        "loadavg_at_end": os.getloadavg(),
     }
     path = Path(args.json)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(out, indent=2))
+    print(f"load average at end: {os.getloadavg()}")
     print(f"wrote {path}")
     return 0
 

@@ -99,8 +99,9 @@ class Ensemble(eqx.Module):
 
     ``mean[i]``, ``cov[i]`` are the sample mean and (unbiased) covariance over the
     paths that did not fail, at ``ts[i]``; ``mean_se``, ``cov_se`` their
-    Monte-Carlo standard errors.  ``failed[p]`` marks path ``p`` (non-finite state
-    or a solver error code); failed paths never enter a statistic.
+    Monte-Carlo standard errors.  ``failed[p]`` marks path ``p`` (non-finite state,
+    a solver error code, or saved values whose fourth power overflows the
+    precision); failed paths never enter a statistic.
     """
 
     ts: Float[Array, " n"]
@@ -336,6 +337,9 @@ def _run(system: StochasticSystem, y0, key, cfg: _Config):
     def chunk(c):
         y0c = jax.lax.dynamic_slice_in_dim(y0_all, c * cfg.chunk, cfg.chunk)
         obs, bad = chunk_fn(system, params, cfg, y0c, key, c)
+        # A path whose saved values are too large for fourth moments in this precision
+        # (e.g. escaping to infinity) counts as failed rather than overflowing the sums.
+        bad = bad | ~jnp.all(jnp.isfinite(obs.reshape(cfg.chunk, -1) ** 4), axis=1)
         valid = (c * cfg.chunk + jnp.arange(cfg.chunk) < cfg.n_paths) & ~bad
         return obs, bad, valid
 

@@ -1,0 +1,133 @@
+"""Bad input raises naming the argument and the allowed range; failures are reported, never averaged."""
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import nhsde
+from nhsde import StateLayout, StochasticSystem
+from nhsde.scenes import BallOnVibratingPlane, get_scene
+
+BALL = BallOnVibratingPlane()
+KEY = jax.random.key(0)
+
+
+def sim(**kw):
+    args = dict(n_paths=64, t1=1.0, dt=0.1)
+    args.update(kw)
+    system = args.pop("system", BALL.build())
+    y0 = args.pop("y0", BALL.initial_state())
+    return nhsde.simulate(system, y0, KEY, **args)
+
+
+@pytest.mark.parametrize(
+    "params, match",
+    [
+        (dict(eps=-1.0), r"eps=-1.0 .*≥ 0"),
+        (dict(nu=-0.5), r"nu=-0.5 .*≥ 0"),
+        (dict(eps=math.nan), r"eps=nan .*finite"),
+        (dict(nu=math.inf), r"nu=inf .*finite"),
+        (dict(radius=0.0), r"radius=0.0 .*> 0"),
+    ],
+)
+def test_bad_parameters_are_refused(params, match):
+    with pytest.raises(ValueError, match=match):
+        BallOnVibratingPlane(**params)
+
+
+def test_traced_bad_parameter_fails_at_run_time_with_its_name():
+    def f(eps):
+        return sim(system=BallOnVibratingPlane(eps=eps).build()).cov[-1, 0, 0]
+
+    with pytest.raises(eqx.EquinoxRuntimeError, match="eps must be finite and ≥ 0"):
+        jax.grad(f)(-1.0)
+    assert np.isfinite(jax.grad(f)(1.0))
+
+
+def test_unknown_parameter_is_refused():
+    with pytest.raises(TypeError, match="mass"):
+        BallOnVibratingPlane(mass=2.0)
+    with pytest.raises(TypeError, match="no parameter 'mu'"):
+        BALL.build().replace_params(mu=1.0)
+
+
+@pytest.mark.parametrize(
+    "kw, exc, match",
+    [
+        (dict(n_paths=0), ValueError, r"n_paths=0; must be ≥ 1"),
+        (dict(n_paths=2.5), ValueError, r"n_paths=2.5; must be a whole number"),
+        (dict(dt=0.0), ValueError, r"dt=0.0; must be > 0"),
+        (dict(dt=-0.1), ValueError, r"dt=-0.1; must be > 0"),
+        (dict(dt=math.nan), ValueError, r"dt=nan; must be finite"),
+        (dict(dt=0.3), ValueError, r"dt=0.3 must divide t1 − t0"),
+        (dict(t1=0.0), ValueError, r"t1=0.0 must be > t0=0.0"),
+        (dict(t1=1.0, t0=2.0), ValueError, r"t1=1.0 must be > t0=2.0"),
+        (dict(y0=jnp.zeros(3)), ValueError, r"y0 has shape \(3,\); expected \(4,\) or \(64, 4\)"),
+        (dict(y0=jnp.array([0.0, jnp.nan, 0, 0])), ValueError, r"y0 contains non-finite"),
+        (dict(solver="rk4"), ValueError, r"solver='rk4'; allowed: euler, milstein, heun, sra1"),
+        (dict(chunk_size=100), ValueError, r"chunk_size=100; must be a positive multiple of 64"),
+        (dict(save=nhsde.Save(n=4)), ValueError, r"save.n=4: n − 1 must be ≥ 1 and divide the 10 steps"),
+        (dict(save=nhsde.Save(names=("z",))), ValueError, r"unknown name 'z'"),
+        (dict(on_failure="ignore"), ValueError, r"on_failure='ignore'; allowed"),
+        (dict(brownian_dt=0.03), ValueError, r"brownian_dt=0.03 must divide"),
+        (dict(system="ball"), TypeError, r"expected a StochasticSystem"),
+    ],
+)
+def test_bad_simulate_arguments_are_refused(kw, exc, match):
+    with pytest.raises(exc, match=match):
+        sim(**kw)
+
+
+def test_bad_key_is_refused():
+    with pytest.raises(TypeError, match="key"):
+        nhsde.simulate(BALL.build(), BALL.initial_state(), 0, n_paths=8, t1=1.0, dt=0.1)
+    # legacy uint32 keys are accepted
+    nhsde.simulate(BALL.build(), BALL.initial_state(), jax.random.PRNGKey(0), n_paths=8, t1=1.0, dt=0.1)
+
+
+def test_unknown_scene_is_refused():
+    with pytest.raises(ValueError, match="unknown scene 'ball'; known scenes: ball-on-vibrating-plane"):
+        get_scene("ball")
+
+
+def explosive():
+    """dy = y² dt + dW from y0 = 1: a fraction of paths blows up before t = 1."""
+    return StochasticSystem(
+        drift_fn=lambda t, y, p: y**2,
+        diffusion_fn=lambda t, y, p: p * jnp.ones((1, 1), y.dtype),
+        params=jnp.float32(1.0),
+        layout=StateLayout(("y",), ("independent_coordinate",)),
+        noise_dim=1,
+        additive_noise=True,
+    )
+
+
+def test_failed_paths_raise_by_default():
+    with pytest.raises(nhsde.SimulationError, match=r"of 512 paths failed"):
+        sim(system=explosive(), y0=jnp.ones(1, jnp.float32), n_paths=512, t1=1.0, dt=0.01)
+
+
+def test_failed_paths_are_excluded_and_counted():
+    ens = sim(
+        system=explosive(), y0=jnp.ones(1, jnp.float32), n_paths=512, t1=1.0, dt=0.01,
+        on_failure="exclude", save=nhsde.Save(paths=True),
+    )
+    failed = np.asarray(ens.failed)
+    assert 0 < failed.sum() < 512
+    assert int(ens.n_used) + failed.sum() == 512
+    assert not np.all(np.isfinite(np.asarray(ens.paths)[failed]).all(axis=(1, 2)))
+    good = np.asarray(ens.paths, np.float64)[~failed]
+    assert np.all(np.isfinite(ens.mean)) and np.all(np.isfinite(ens.cov))
+    np.testing.assert_allclose(ens.mean[:, 0], good[:, :, 0].mean(0), rtol=1e-4)
+
+
+def test_failure_inside_a_transformation_is_an_error():
+    def f(scale):
+        return sim(system=explosive(), y0=jnp.ones(1, jnp.float32) * scale, n_paths=512, t1=1.0, dt=0.01).mean[-1, 0]
+
+    with pytest.raises((eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError), match="some paths failed"):
+        jax.jit(f)(jnp.float32(1.0))

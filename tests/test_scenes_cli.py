@@ -1,0 +1,111 @@
+"""Scenes model only what they need; the sleigh against its energy balance; the CLI."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import nhsde
+from nhsde._cli import main
+from nhsde.scenes import BallOnVibratingPlane, ChaplyginSleigh
+
+
+def test_ball_state_holds_only_what_is_asked_for():
+    full = BallOnVibratingPlane(drift=True).build()
+    assert full.layout.names == ("x", "y", "u_x", "u_y")
+    assert full.layout.indices("dependent_coordinate") == (0, 1)
+    small = BallOnVibratingPlane(drift=False).build()
+    assert small.layout.names == ("u_x", "u_y")
+    assert small.observable_names() == ("u_x", "u_y")
+    assert "omega_x" in BallOnVibratingPlane(angular_velocity=True).build().observable_names()
+    assert ChaplyginSleigh(drift=False).build().layout.names == ("v", "omega")
+
+
+def test_ball_angular_velocity_from_the_rolling_constraint():
+    scene = BallOnVibratingPlane(radius=0.5, angular_velocity=True)
+    ens = nhsde.simulate(
+        scene.build(), scene.initial_state(), jax.random.key(0), n_paths=64, t1=1.0, dt=0.01,
+        save=nhsde.Save(names=("u_x", "u_y", "omega_x", "omega_y"), paths=True),
+    )
+    u_x, u_y, w_x, w_y = np.moveaxis(np.asarray(ens.paths), -1, 0)
+    np.testing.assert_allclose(w_y, u_x / 0.5, rtol=1e-6)  # u_x = r ω_y
+    np.testing.assert_allclose(w_x, -u_y / 0.5, rtol=1e-6)  # u_y = −r ω_x
+
+
+def test_reduced_and_full_ball_agree():
+    """The velocity-only state gives the same velocities (same key, same noise channels)."""
+    kw = dict(n_paths=128, t1=1.0, dt=0.01, save=nhsde.Save(names=("u_x", "u_y"), paths=True))
+    a = nhsde.simulate(BallOnVibratingPlane().build(), jnp.zeros(4), jax.random.key(1), **kw)
+    b = nhsde.simulate(BallOnVibratingPlane(drift=False).build(), jnp.zeros(2), jax.random.key(1), **kw)
+    np.testing.assert_allclose(a.paths, b.paths, rtol=1e-6, atol=1e-7)
+
+
+def test_sleigh_conserves_energy_without_friction_and_noise():
+    scene = ChaplyginSleigh(eps=0.0, nu=0.0, mass=2.0, inertia=0.5, offset=0.7)
+    system, p = scene.build(), scene.params
+
+    def energy_rate(y):
+        grad_h = jax.grad(lambda y: 0.5 * (p.mass * y[3] ** 2 + (p.inertia + p.mass * p.offset**2) * y[4] ** 2))(y)
+        return grad_h @ system.drift(0.0, y, p)
+
+    ys = jax.random.normal(jax.random.key(0), (100, 5), jnp.float64)
+    assert float(jnp.max(jnp.abs(jax.vmap(energy_rate)(ys)))) < 1e-12
+
+
+def test_sleigh_mean_energy_follows_its_balance():
+    """Itô: dE[H]/dt = −4ε E[H] + ν, so E[H](t) = H0 e^{−4εt} + ν(1 − e^{−4εt})/(4ε)."""
+    eps, nu, t1 = 0.5, 0.8, 2.0
+    scene = ChaplyginSleigh(eps=eps, nu=nu, drift=False)
+    p = scene.params
+    j = float(p.inertia + p.mass * p.offset**2)
+    y0 = jnp.array([1.0, 0.5], jnp.float64)
+    ens = nhsde.simulate(
+        scene.build(), y0, jax.random.key(2), n_paths=8192, t1=t1, dt=0.002, solver="sra1",
+        save=nhsde.Save(n=5, paths=True),
+    )
+    y = np.asarray(ens.paths, np.float64)
+    h = 0.5 * (float(p.mass) * y[..., 0] ** 2 + j * y[..., 1] ** 2)
+    h0 = 0.5 * (1.0 + j * 0.25)
+    t = np.asarray(ens.ts, np.float64)
+    exact = h0 * np.exp(-4 * eps * t) + nu * (1 - np.exp(-4 * eps * t)) / (4 * eps)
+    se = h.std(0) / np.sqrt(h.shape[0])
+    assert np.all(np.abs(h.mean(0) - exact)[1:] <= 4 * se[1:]), (h.mean(0), exact, se)
+
+
+def test_cli_lists_scenes(capsys):
+    assert main(["scenes"]) == 0
+    out = capsys.readouterr().out
+    assert "ball-on-vibrating-plane" in out and "chaplygin-sleigh" in out and "eps" in out
+
+
+def test_cli_simulate_prints_and_saves(tmp_path, capsys):
+    out_file = tmp_path / "run.npz"
+    code = main(
+        ["simulate", "ball-on-vibrating-plane", "--paths", "256", "--t1", "1", "--dt", "0.01",
+         "--set", "eps=2", "--no-progress", "--out", str(out_file)]
+    )
+    assert code == 0
+    text = capsys.readouterr().out
+    assert "systematic drift" in text and "d/d eps" in text and "closed form" in text
+    data = np.load(out_file)
+    meta = json.loads(str(data["metadata"]))
+    assert meta["scene"] == "ball-on-vibrating-plane" and meta["parameters"]["eps"] == 2.0
+    assert meta["names"] == ["x", "y", "u_x", "u_y"]
+    assert data["cov"].shape == (11, 4, 4) and data["d_cov_d_nu"].shape == (11, 4, 4)
+    # K is linear in ν: ∂K/∂ν = K/ν
+    np.testing.assert_allclose(data["d_cov_d_nu"][-1], data["cov"][-1] / 1.0, rtol=1e-4, atol=1e-7)
+
+
+def test_cli_rejects_bad_input():
+    import pytest
+
+    for argv, match in [
+        (["simulate", "ball"], "unknown scene 'ball'"),
+        (["simulate", "ball-on-vibrating-plane", "--set", "eps=-1"], "eps=-1.0 is not allowed"),
+        (["simulate", "ball-on-vibrating-plane", "--set", "mass=1"], "unknown parameter"),
+        (["simulate", "ball-on-vibrating-plane", "--solver", "rk4", "--no-progress"], "solver='rk4'"),
+        (["simulate", "ball-on-vibrating-plane", "--paths", "0", "--no-progress"], "n_paths=0"),
+    ]:
+        with pytest.raises(SystemExit, match=match):
+            main(argv)
