@@ -409,9 +409,21 @@ def machine_info():
         load = os.getloadavg()
     except OSError:
         load = None
+    import subprocess
+
     import jaxlib
 
+    repo = Path(__file__).resolve().parents[1]
+
+    def git(*a):
+        try:
+            return subprocess.run(["git", *a], cwd=repo, capture_output=True, text=True, timeout=10).stdout.strip()
+        except (OSError, subprocess.SubprocessError):
+            return ""
+
     return {
+        "git_head": git("rev-parse", "--short", "HEAD"),
+        "src_modified_vs_head": bool(git("status", "--porcelain", "--", "src")),
         "cpu_count": os.cpu_count(),
         "platform.processor()": proc,
         "cpu_model": model,

@@ -120,6 +120,12 @@ def test_results_independent_of_chunk_size():
     # the first paths do not depend on how many paths are asked for
     more = run(n_paths=700)
     assert np.array_equal(more.paths[:300], ref.paths)
+    # and a later piece of the ensemble can be computed on its own
+    piece = nhsde.simulate(
+        BALL.build(), BALL.initial_state(), jax.random.key(11), n_paths=300, t1=1.0, dt=0.01,
+        save=nhsde.Save(paths=True), first_path=128,
+    )
+    assert np.array_equal(piece.paths[:172], ref.paths[128:])
 
 
 def test_paths_are_independent():

@@ -76,6 +76,7 @@ class Save:
 @dataclasses.dataclass(frozen=True)
 class _Config:
     n_paths: int
+    first_path: int
     n_chunks: int
     chunk: int
     n_steps: int
@@ -193,7 +194,7 @@ def _fixed_chunk(system, params, cfg, y0, key, chunk_index):
     info = SOLVERS[cfg.solver]
     solver = info.make()
     nb = cfg.chunk // BLOCK
-    keys = block_keys(key, chunk_index * nb, nb)
+    keys = block_keys(key, cfg.first_path // BLOCK + chunk_index * nb, nb)
     lanes = jnp.arange(BLOCK)
     dtype = y0.dtype
     t0 = jnp.asarray(cfg.t0, dtype)
@@ -249,7 +250,7 @@ def _adaptive_chunk(system, params, cfg, y0, key, chunk_index):
     ts = jnp.linspace(cfg.t0, cfg.t1, cfg.n_save, dtype=dtype)
     dt0 = (cfg.t1 - cfg.t0) / cfg.n_steps
     observe = jax.vmap(system.observe(cfg.names), in_axes=(0, 0, None))
-    ids = chunk_index * cfg.chunk + jnp.arange(cfg.chunk)
+    ids = cfg.first_path + chunk_index * cfg.chunk + jnp.arange(cfg.chunk)
 
     def one(y0_, path_id):
         path = dfx.VirtualBrownianTree(
@@ -399,6 +400,7 @@ def simulate(
     max_steps: int = 100_000,
     on_failure: Literal["raise", "exclude"] = "raise",
     progress: bool = False,
+    first_path: int = 0,
 ) -> Ensemble:
     """Integrate ``n_paths`` independent paths of ``system`` from ``y0``.
 
@@ -409,6 +411,9 @@ def simulate(
     - ``brownian_dt``: base step of the Brownian path (divides ``dt``); solves with
       different ``dt`` and the same ``brownian_dt`` and key share one path.
     - ``chunk_size``: paths per chunk (a multiple of 64); memory scales with it.
+    - ``first_path``: index of the first path (a multiple of 64): paths
+      ``first_path … first_path + n_paths − 1`` of the ensemble that ``key``
+      defines, so a long run can be computed piecewise and resumed.
     - ``on_failure``: ``'raise'`` raises :class:`SimulationError` (or, under a JAX
       transformation, a run-time error) if any path fails; ``'exclude'`` leaves
       failed paths out of the statistics and marks them in ``Ensemble.failed``.
@@ -431,6 +436,9 @@ def simulate(
     n_paths = _number("n_paths", n_paths, integer=True)
     if n_paths < 1:
         raise ValueError(f"n_paths={n_paths}; must be ≥ 1.")
+    first_path = _number("first_path", first_path, integer=True)
+    if first_path < 0 or first_path % BLOCK:
+        raise ValueError(f"first_path={first_path}; must be a non-negative multiple of {BLOCK}.")
     t0 = _number("t0", t0)
     t1 = _number("t1", t1)
     if t1 <= t0:
@@ -476,7 +484,7 @@ def simulate(
     if info.interpretation not in ("any", system.interpretation):
         system = system.converted(info.interpretation)
     cfg = _Config(
-        n_paths=n_paths, n_chunks=math.ceil(n_paths / chunk_size), chunk=chunk_size, n_steps=n_steps,
+        n_paths=n_paths, first_path=first_path, n_chunks=math.ceil(n_paths / chunk_size), chunk=chunk_size, n_steps=n_steps,
         n_save=n_save, t0=t0, t1=t1, substeps=substeps, names=names, solver=solver,
         adaptive=bool(adaptive), rtol=rtol, atol=atol, max_steps=max_steps, keep_paths=bool(save.paths),
         per_path_y0=y0.ndim == 2, progress=bool(progress),
