@@ -28,7 +28,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ._system import StochasticSystem
-from .noise._brownian import BLOCK, CounterBrownianPath, block_keys
+from .noise._brownian import BLOCK, Wiener, block_keys
 
 __all__ = ["SOLVERS", "Ensemble", "Save", "SimulationError", "SolverInfo", "simulate"]
 
@@ -204,9 +204,7 @@ def _fixed_chunk(system, params, cfg, y0, key, chunk_index):
     observe = jax.vmap(jax.vmap(system.observe(cfg.names), in_axes=(None, 0, None)), in_axes=(None, 0, None))
 
     def terms(block_key, lane):
-        path = CounterBrownianPath(
-            block_key, lane, t0, base_dt, (system.noise_dim,), cfg.substeps, info.levy_area
-        )
+        path = system.noise.path(block_key, lane, t0, base_dt, (system.noise_dim,), cfg.substeps, info.levy_area)
         return dfx.MultiTerm(dfx.ODETerm(system.drift_fn), dfx.ControlTerm(system.diffusion_fn, path))
 
     def step_one(y, t, block_key, lane):
@@ -433,6 +431,12 @@ def simulate(
             f"solver={solver!r} needs additive noise, but this system's diffusion depends on the state; "
             "use 'euler', 'milstein' or 'heun'."
         )
+    if not system.noise.continuous and solver != "euler":
+        raise ValueError(
+            f"solver={solver!r} does not apply to a system driven by jumps; use 'euler' (S0 §2, Remark)."
+        )
+    if adaptive and not isinstance(system.noise, Wiener):
+        raise ValueError("adaptive steps need a Wiener driver (VirtualBrownianTree); use fixed steps.")
     n_paths = _number("n_paths", n_paths, integer=True)
     if n_paths < 1:
         raise ValueError(f"n_paths={n_paths}; must be ≥ 1.")

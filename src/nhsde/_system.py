@@ -17,6 +17,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
+from .noise._brownian import AbstractDriver, Wiener
+
 __all__ = ["ROLES", "StateLayout", "StochasticSystem"]
 
 ROLES = (
@@ -89,6 +91,8 @@ class StochasticSystem(eqx.Module):
     - ``observables`` are extra named outputs ``f(t, y, params) -> ()`` computed
       from the state on request (e.g. the ball's angular velocity), so they cost
       no state.
+    - ``noise`` is the driving process ``W`` (S0 (1.3)): :class:`~nhsde.noise.Wiener`
+      by default (a normal system); drivers with jumps make Poisson or general systems.
     - ``additive_noise`` declares that ``b`` does not depend on ``y``, which
       admits additive-noise solvers and makes Itô and Stratonovich coincide.
     """
@@ -101,6 +105,7 @@ class StochasticSystem(eqx.Module):
     interpretation: Literal["ito", "stratonovich"] = eqx.field(static=True, default="ito")
     additive_noise: bool = eqx.field(static=True, default=False)
     observables: tuple[tuple[str, Callable], ...] = eqx.field(static=True, default=())
+    noise: AbstractDriver = Wiener()
 
     def __check_init__(self):
         if self.interpretation not in ("ito", "stratonovich"):
@@ -152,6 +157,10 @@ class StochasticSystem(eqx.Module):
             raise ValueError(f"interpretation={interpretation!r}; allowed: 'ito' or 'stratonovich'.")
         if interpretation == self.interpretation:
             return self
+        if not self.noise.continuous:
+            raise ValueError(
+                "a system driven by jumps has no Stratonovich form (S0 §2, Remark); use an Itô solver."
+            )
         drift = self.drift_fn
         if not self.additive_noise:
             sign = -1.0 if interpretation == "stratonovich" else 1.0

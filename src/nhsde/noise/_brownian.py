@@ -17,7 +17,9 @@ alone: paths are grouped in blocks of ``BLOCK`` lanes, the block key is
 
 from __future__ import annotations
 
+import abc
 import math
+from typing import ClassVar
 
 import diffrax as dfx
 import equinox as eqx
@@ -26,7 +28,7 @@ import jax.numpy as jnp
 import jax.random as jr
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
-__all__ = ["BLOCK", "CounterBrownianPath", "block_keys"]
+__all__ = ["BLOCK", "AbstractDriver", "CounterBrownianPath", "Wiener", "block_keys"]
 
 BLOCK = 64
 """Paths per random block; chunk sizes are multiples of it."""
@@ -88,3 +90,28 @@ class CounterBrownianPath(dfx.AbstractBrownianPath):
         integral = self.dt * jnp.sum(w_before + 0.5 * dw + h_base, axis=0)
         h = self.substeps * self.dt
         return dfx.SpaceTimeLevyArea(dt=h, W=w, H=integral / h - 0.5 * w)
+
+
+class AbstractDriver(eqx.Module):
+    """The driving process ``W`` of ``dZ = a dt + b dW`` (S0 (1.3)), per noise channel.
+
+    A driver makes the counter-based path of one lane of one block of paths on
+    the fixed step grid; its parameters (jump intensities, …) are pytree leaves.
+    ``continuous`` is False for drivers with jumps, for which only Itô solvers
+    without Lévy area apply (S0 §2, Remark: the Stratonovich shortcut fails).
+    """
+
+    continuous: eqx.AbstractClassVar[bool]
+
+    @abc.abstractmethod
+    def path(self, key, lane, t_start, dt, shape, substeps, levy_area) -> dfx.AbstractPath:
+        """The path of lane ``lane`` of the block with key ``key`` (see :class:`CounterBrownianPath`)."""
+
+
+class Wiener(AbstractDriver):
+    """Standard Wiener process: S0's normal stochastic systems."""
+
+    continuous: ClassVar[bool] = True
+
+    def path(self, key, lane, t_start, dt, shape, substeps, levy_area):
+        return CounterBrownianPath(key, lane, t_start, dt, shape, substeps, levy_area)
