@@ -32,7 +32,7 @@ def strong_slope(system, y0, solver, t1=1.0, n_paths=512):
 # Additive noise: Euler, Milstein and Heun have strong order 1.  SRA1 has order 1.5
 # in general; with a *linear* drift every Itô–Taylor term it leaves out is of
 # mean-square local order ≥ 2.5 (e.g. I_(1,0,0) A²b), so on the ball it is order 2.
-BALL_ORDER = {"euler": 1.0, "milstein": 1.0, "heun": 1.0, "sra1": 2.0}
+BALL_ORDER = {"euler": 1.0, "milstein": 1.0, "heun": 1.0, "sra1": 2.0, "exponential": 1.0}
 
 
 @pytest.mark.parametrize("solver", list(nhsde.SOLVERS))
@@ -42,7 +42,7 @@ def test_strong_order_on_the_ball(solver):
     assert abs(slope - BALL_ORDER[solver]) <= 0.15, (solver, slope)
 
 
-@pytest.mark.parametrize("solver", ["euler", "sra1"])
+@pytest.mark.parametrize("solver", ["euler", "sra1", "exponential"])
 def test_strong_order_on_the_nonlinear_sleigh(solver):
     """Nonlinear drift, additive noise: the general orders 1 (Euler) and 1.5 (SRA1)."""
     scene = ChaplyginSleigh(eps=0.1, nu=1.0)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from typing import Literal
 
 import diffrax as dfx
@@ -27,6 +28,7 @@ import jax.random as jr
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from ._solvers import ExponentialEuler
 from ._system import StochasticSystem
 from .noise._brownian import BLOCK, Wiener, block_keys
 
@@ -37,7 +39,7 @@ __all__ = ["SOLVERS", "Ensemble", "Save", "SimulationError", "SolverInfo", "simu
 class SolverInfo:
     """A solver nhsde offers: its diffrax class and what it converges to."""
 
-    make: type
+    make: Callable[[StochasticSystem], dfx.AbstractSolver]
     interpretation: Literal["ito", "stratonovich", "any"]
     additive_only: bool
     levy_area: type
@@ -46,11 +48,28 @@ class SolverInfo:
     doc: str
 
 
+def _exponential(system):
+    if system.linear_drift is None:
+        raise ValueError(
+            "solver='exponential' needs the system's linear drift part (StochasticSystem.linear_drift); "
+            "this system does not declare one."
+        )
+    return ExponentialEuler(system.linear_drift)
+
+
 SOLVERS: dict[str, SolverInfo] = {
-    "euler": SolverInfo(dfx.Euler, "ito", False, dfx.BrownianIncrement, 0.5, 1.0, "Euler–Maruyama (Itô)"),
-    "milstein": SolverInfo(dfx.ItoMilstein, "ito", False, dfx.BrownianIncrement, 1.0, 1.0, "Milstein (Itô)"),
-    "heun": SolverInfo(dfx.EulerHeun, "stratonovich", False, dfx.BrownianIncrement, 0.5, 1.0, "Euler–Heun (Stratonovich)"),
-    "sra1": SolverInfo(dfx.SRA1, "any", True, dfx.SpaceTimeLevyArea, 1.5, 1.5, "SRA1 stochastic Runge–Kutta (additive noise)"),
+    "euler": SolverInfo(lambda s: dfx.Euler(), "ito", False, dfx.BrownianIncrement, 0.5, 1.0, "Euler–Maruyama (Itô)"),
+    "milstein": SolverInfo(lambda s: dfx.ItoMilstein(), "ito", False, dfx.BrownianIncrement, 1.0, 1.0, "Milstein (Itô)"),
+    "heun": SolverInfo(
+        lambda s: dfx.EulerHeun(), "stratonovich", False, dfx.BrownianIncrement, 0.5, 1.0, "Euler–Heun (Stratonovich)"
+    ),
+    "sra1": SolverInfo(
+        lambda s: dfx.SRA1(), "any", True, dfx.SpaceTimeLevyArea, 1.5, 1.5, "SRA1 stochastic Runge–Kutta (additive noise)"
+    ),
+    "exponential": SolverInfo(
+        _exponential, "ito", False, dfx.BrownianIncrement, 0.5, 1.0,
+        "exponential Euler–Maruyama, exact in the linear friction: stable for any ε·dt",
+    ),
 }
 
 
@@ -192,7 +211,7 @@ def _tick(n):
 def _fixed_chunk(system, params, cfg, y0, key, chunk_index):
     """Observations ``(chunk, n_save, k)`` and failure flags of one chunk, fixed steps."""
     info = SOLVERS[cfg.solver]
-    solver = info.make()
+    solver = info.make(system)
     nb = cfg.chunk // BLOCK
     keys = block_keys(key, cfg.first_path // BLOCK + chunk_index * nb, nb)
     lanes = jnp.arange(BLOCK)
@@ -241,7 +260,7 @@ def _fixed_chunk(system, params, cfg, y0, key, chunk_index):
 def _adaptive_chunk(system, params, cfg, y0, key, chunk_index):
     """As :func:`_fixed_chunk`, with adaptive steps (diffeqsolve + VirtualBrownianTree)."""
     info = SOLVERS[cfg.solver]
-    solver = info.make()
+    solver = info.make(system)
     if not isinstance(solver, dfx.SRA1):
         solver = dfx.HalfSolver(solver)  # step doubling gives the error estimate
     dtype = y0.dtype
@@ -426,6 +445,7 @@ def simulate(
     if on_failure not in ("raise", "exclude"):
         raise ValueError(f"on_failure={on_failure!r}; allowed: 'raise', 'exclude'.")
     info = SOLVERS[solver]
+    info.make(system)  # structural checks of the solver against the system
     if info.additive_only and not system.additive_noise:
         raise ValueError(
             f"solver={solver!r} needs additive noise, but this system's diffusion depends on the state; "
@@ -462,6 +482,11 @@ def simulate(
     if y0.shape not in ((d,), (n_paths, d)):
         raise ValueError(
             f"y0 has shape {y0.shape}; expected ({d},) or ({n_paths}, {d}) for the state {system.layout.names}."
+        )
+    if y0.dtype == jnp.float32 and n_steps * substeps > 2**22:
+        raise ValueError(
+            f"{n_steps * substeps} Brownian steps are too many to index from float32 times; "
+            "pass y0 in float64 (with jax_enable_x64) or take fewer steps."
         )
     if not isinstance(y0, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(y0))):
         raise ValueError("y0 contains non-finite values.")

@@ -93,6 +93,8 @@ class StochasticSystem(eqx.Module):
       no state.
     - ``noise`` is the driving process ``W`` (S0 (1.3)): :class:`~nhsde.noise.Wiener`
       by default (a normal system); drivers with jumps make Poisson or general systems.
+    - ``linear_drift(params) -> A`` optionally names the stiff linear part of the
+      drift ``a = A Z + N(Z)`` (viscous friction), for the exponential solver.
     - ``additive_noise`` declares that ``b`` does not depend on ``y``, which
       admits additive-noise solvers and makes Itô and Stratonovich coincide.
     """
@@ -106,6 +108,7 @@ class StochasticSystem(eqx.Module):
     additive_noise: bool = eqx.field(static=True, default=False)
     observables: tuple[tuple[str, Callable], ...] = eqx.field(static=True, default=())
     noise: AbstractDriver = Wiener()
+    linear_drift: Callable | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         if self.interpretation not in ("ito", "stratonovich"):

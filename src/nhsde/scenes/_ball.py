@@ -59,6 +59,16 @@ def _diffusion_velocity(t, y, p):
     return jnp.sqrt(p.nu) * p.delta * jnp.eye(2, dtype=y.dtype)
 
 
+def _linear_with_position(p):
+    """A of the drift A Z: ẋ = u, u̇ = −2ε u."""
+    z, i = jnp.zeros((2, 2)), jnp.eye(2)
+    return jnp.block([[z, i], [z, -2.0 * p.eps * i]])
+
+
+def _linear_velocity(p):
+    return -2.0 * p.eps * jnp.eye(2)
+
+
 def _omega(ux_index, uy_index):
     def omega_x(t, y, p):
         return -y[uy_index] / p.radius
@@ -102,9 +112,11 @@ class BallOnVibratingPlane(eqx.Module):
                 ("dependent_coordinate", "dependent_coordinate", "velocity", "velocity"),
             )
             drift, diffusion, omega = _drift_with_position, _diffusion_with_position, _OMEGA_WITH_POSITION
+            linear = _linear_with_position
         else:
             layout = StateLayout(("u_x", "u_y"), ("velocity", "velocity"))
             drift, diffusion, omega = _drift_velocity, _diffusion_velocity, _OMEGA_VELOCITY
+            linear = _linear_velocity
         observables = (("omega_x", omega[0]), ("omega_y", omega[1])) if self.angular_velocity else ()
         return StochasticSystem(
             drift_fn=drift,
@@ -114,6 +126,7 @@ class BallOnVibratingPlane(eqx.Module):
             noise_dim=2,
             additive_noise=True,
             observables=observables,
+            linear_drift=linear,
         )
 
     def initial_state(self):

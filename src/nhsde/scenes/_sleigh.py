@@ -64,6 +64,15 @@ def _diffusion_reduced(t, y, p):
     return _velocity_noise(p, y.dtype)
 
 
+def _linear_full(p):
+    """Friction part of the drift: −2ε on (v, ω)."""
+    return jnp.diag(jnp.array([0.0, 0.0, 0.0, 1.0, 1.0])) * (-2.0 * p.eps)
+
+
+def _linear_reduced(p):
+    return -2.0 * p.eps * jnp.eye(2)
+
+
 class ChaplyginSleigh(eqx.Module):
     """Scene: the noisy Chaplygin sleigh.
 
@@ -87,12 +96,13 @@ class ChaplyginSleigh(eqx.Module):
                 ("x", "y", "theta", "v", "omega"),
                 ("dependent_coordinate", "dependent_coordinate", "independent_coordinate", "velocity", "velocity"),
             )
-            drift, diffusion = _drift_full, _diffusion_full
+            drift, diffusion, linear = _drift_full, _diffusion_full, _linear_full
         else:
             layout = StateLayout(("v", "omega"), ("velocity", "velocity"))
-            drift, diffusion = _drift_reduced, _diffusion_reduced
+            drift, diffusion, linear = _drift_reduced, _diffusion_reduced, _linear_reduced
         return StochasticSystem(
-            drift_fn=drift, diffusion_fn=diffusion, params=self.params, layout=layout, noise_dim=2, additive_noise=True
+            drift_fn=drift, diffusion_fn=diffusion, params=self.params, layout=layout, noise_dim=2,
+            additive_noise=True, linear_drift=linear,
         )
 
     def initial_state(self):
