@@ -30,7 +30,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._solvers import ExponentialEuler
 from ._system import StochasticSystem
-from .noise._brownian import BLOCK, Wiener, block_keys
+from .noise._brownian import BLOCK, StepIncrement, Wiener, block_keys
 
 __all__ = ["SOLVERS", "Ensemble", "Save", "SimulationError", "SolverInfo", "simulate"]
 
@@ -214,7 +214,6 @@ def _fixed_chunk(system, params, cfg, y0, key, chunk_index):
     solver = info.make(system)
     nb = cfg.chunk // BLOCK
     keys = block_keys(key, cfg.first_path // BLOCK + chunk_index * nb, nb)
-    lanes = jnp.arange(BLOCK)
     dtype = y0.dtype
     t0 = jnp.asarray(cfg.t0, dtype)
     dt = jnp.asarray((cfg.t1 - cfg.t0) / cfg.n_steps, dtype)
@@ -222,22 +221,30 @@ def _fixed_chunk(system, params, cfg, y0, key, chunk_index):
     per_save = cfg.n_steps // (cfg.n_save - 1)
     observe = jax.vmap(jax.vmap(system.observe(cfg.names), in_axes=(None, 0, None)), in_axes=(None, 0, None))
 
-    def terms(block_key, lane):
-        path = system.noise.path(block_key, lane, t0, base_dt, (system.noise_dim,), cfg.substeps, info.levy_area)
+    def terms(increment):
+        path = StepIncrement(increment, info.levy_area)
         return dfx.MultiTerm(dfx.ODETerm(system.drift_fn), dfx.ControlTerm(system.diffusion_fn, path))
 
-    def step_one(y, t, block_key, lane):
-        y1, _, _, _, result = solver.step(terms(block_key, lane), t, t + dt, y, params, None, False)
+    def lane_step(y, t, increment):
+        y1, _, _, _, result = solver.step(terms(increment), t, t + dt, y, params, None, False)
         return y1, result == dfx.RESULTS.successful
 
-    step = jax.vmap(jax.vmap(step_one, in_axes=(0, None, None, 0)), in_axes=(0, None, 0, None))
+    def block_step(y, k, block_key):
+        # one draw per block; each lane gets its row through vmap
+        increments = system.noise.block_increment(
+            block_key, k, base_dt, (system.noise_dim,), cfg.substeps, info.levy_area
+        )
+        t = t0 + k.astype(dtype) * dt
+        return jax.vmap(lane_step, in_axes=(0, None, 0))(y, t, increments)
+
+    step = jax.vmap(block_step, in_axes=(0, None, 0))
 
     def interval(carry, j):
         y, ok = carry
 
         def body(state, i):
             y, ok = state
-            y1, good = step(y, t0 + (j * per_save + i).astype(dtype) * dt, keys, lanes)
+            y1, good = step(y, (j * per_save + i).astype(jnp.int32), keys)
             return (y1, ok & good), None
 
         (y, ok), _ = jax.lax.scan(body, (y, ok), jnp.arange(per_save))
@@ -248,11 +255,12 @@ def _fixed_chunk(system, params, cfg, y0, key, chunk_index):
 
     y = y0.reshape(nb, BLOCK, -1)
     # The offered solvers keep no state between steps; init only runs diffrax's checks.
-    solver.init(terms(keys[0], lanes[0]), t0, t0 + dt, y[0, 0], params)
+    first = system.noise.block_increment(keys[0], jnp.int32(0), base_dt, (system.noise_dim,), cfg.substeps, info.levy_area)
+    solver.init(terms(jax.tree_util.tree_map(lambda a: a[0], first)), t0, t0 + dt, y[0, 0], params)
     ok = jnp.all(jnp.isfinite(y), axis=-1)
-    first = observe(t0, y, params)
+    first_obs = observe(t0, y, params)
     (_, ok), rest = jax.lax.scan(jax.checkpoint(interval), (y, ok), jnp.arange(cfg.n_save - 1))
-    obs = jnp.concatenate([first[None], rest], axis=0)  # (n_save, nb, BLOCK, k)
+    obs = jnp.concatenate([first_obs[None], rest], axis=0)  # (n_save, nb, BLOCK, k)
     obs = jnp.moveaxis(obs, 0, 2).reshape(cfg.chunk, cfg.n_save, -1)
     return obs, ~ok.reshape(cfg.chunk)
 
@@ -482,11 +490,6 @@ def simulate(
     if y0.shape not in ((d,), (n_paths, d)):
         raise ValueError(
             f"y0 has shape {y0.shape}; expected ({d},) or ({n_paths}, {d}) for the state {system.layout.names}."
-        )
-    if y0.dtype == jnp.float32 and n_steps * substeps > 2**22:
-        raise ValueError(
-            f"{n_steps * substeps} Brownian steps are too many to index from float32 times; "
-            "pass y0 in float64 (with jax_enable_x64) or take fewer steps."
         )
     if not isinstance(y0, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(y0))):
         raise ValueError("y0 contains non-finite values.")
