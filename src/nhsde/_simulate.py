@@ -112,6 +112,8 @@ class _Config:
     keep_paths: bool
     per_path_y0: bool
     progress: bool
+    devices: tuple
+    checkpoint: bool
 
 
 class Ensemble(eqx.Module):
@@ -259,7 +261,8 @@ def _fixed_chunk(system, params, cfg, y0, key, chunk_index):
     solver.init(terms(jax.tree_util.tree_map(lambda a: a[0], first)), t0, t0 + dt, y[0, 0], params)
     ok = jnp.all(jnp.isfinite(y), axis=-1)
     first_obs = observe(t0, y, params)
-    (_, ok), rest = jax.lax.scan(jax.checkpoint(interval), (y, ok), jnp.arange(cfg.n_save - 1))
+    interval = jax.checkpoint(interval) if cfg.checkpoint else interval
+    (_, ok), rest = jax.lax.scan(interval, (y, ok), jnp.arange(cfg.n_save - 1))
     obs = jnp.concatenate([first_obs[None], rest], axis=0)  # (n_save, nb, BLOCK, k)
     obs = jnp.moveaxis(obs, 0, 2).reshape(cfg.chunk, cfg.n_save, -1)
     return obs, ~ok.reshape(cfg.chunk)
@@ -302,24 +305,31 @@ def _adaptive_chunk(system, params, cfg, y0, key, chunk_index):
 # ----------------------------------------------------------------------------- moments
 
 
-def _sums(obs, valid, shift, carry):
-    """Add one chunk's moment sums to ``carry``, block by block in path order.
+def _block_sums(obs, valid, shift):
+    """Moment sums of each block of ``BLOCK`` paths, about ``shift``.
 
-    Each block of ``BLOCK`` paths is reduced by the same fixed-shape loop body
-    and the blocks are added sequentially, so every addition happens in the same
-    order for any chunk size: the statistics are bitwise chunk-independent.
+    Every block is reduced by the same fixed-shape loop body, and the blocks are
+    then added one after another in path order (:func:`_accumulate`), so every
+    addition happens in the same order for any chunk size or device count: the
+    statistics are bitwise independent of both.
     """
 
-    def add(acc, block):
+    def one(_, block):
         obs_b, valid_b = block
         z = jnp.where(valid_b[:, None, None], obs_b - shift, 0.0)
         zz = jnp.einsum("cni,cnj->cnij", z, z)
         z_zz = jnp.einsum("cni,cnj->cnij", z, z * z)
-        new = (jnp.sum(z, 0), jnp.sum(zz, 0), jnp.sum(z_zz, 0), jnp.sum(zz * zz, 0), jnp.sum(valid_b, dtype=jnp.int32))
-        return jax.tree_util.tree_map(jnp.add, acc, new), None
+        return None, (jnp.sum(z, 0), jnp.sum(zz, 0), jnp.sum(z_zz, 0), jnp.sum(zz * zz, 0), jnp.sum(valid_b, dtype=jnp.int32))
 
     blocks = (obs.reshape(-1, BLOCK, *obs.shape[1:]), valid.reshape(-1, BLOCK))
-    return jax.lax.scan(add, carry, blocks)[0]
+    return jax.lax.scan(one, None, blocks)[1]
+
+
+def _accumulate(carry, block_sums):
+    def add(acc, block):
+        return jax.tree_util.tree_map(jnp.add, acc, block), None
+
+    return jax.lax.scan(add, carry, block_sums)[0]
 
 
 def _central_product_moment(a, m2, m3, m4):
@@ -360,16 +370,24 @@ def _run(system: StochasticSystem, y0, key, cfg: _Config):
     else:
         y0_all = jnp.broadcast_to(y0, (total, y0.shape[0]))
 
-    def chunk(c):
-        y0c = jax.lax.dynamic_slice_in_dim(y0_all, c * cfg.chunk, cfg.chunk)
-        obs, bad = chunk_fn(system, params, cfg, y0c, key, c)
+    def run(c, size):
+        """Observations, failure flags and validity of the ``size`` paths of chunk ``c``."""
+        y0c = jax.lax.dynamic_slice_in_dim(y0_all, c * cfg.chunk, size)
+        obs, bad = chunk_fn(system, params, dataclasses.replace(cfg, chunk=size), y0c, key, c)
         # A path whose saved values are too large for fourth moments in this precision
         # (e.g. escaping to infinity) counts as failed rather than overflowing the sums.
-        bad = bad | ~jnp.all(jnp.isfinite(obs.reshape(cfg.chunk, -1) ** 4), axis=1)
-        valid = (c * cfg.chunk + jnp.arange(cfg.chunk) < cfg.n_paths) & ~bad
+        bad = bad | ~jnp.all(jnp.isfinite(obs.reshape(size, -1) ** 4), axis=1)
+        valid = (c * cfg.chunk + jnp.arange(size) < cfg.n_paths) & ~bad
         return obs, bad, valid
 
-    obs0, bad0, valid0 = chunk(0)
+    def chunk(c):
+        return run(c, cfg.chunk)
+
+    n_dev = len(cfg.devices)
+    if n_dev == 1:
+        obs0, bad0, valid0 = chunk(0)
+    else:  # the first block alone gives the shift before the devices start
+        obs0, bad0, valid0 = run(0, BLOCK)
     # Sums are taken about the first path, a point within the spread of the
     # ensemble, so float32 second moments do not cancel.
     shift = jax.lax.stop_gradient(jnp.where(valid0[0], obs0[0], 0.0))
@@ -381,13 +399,37 @@ def _run(system: StochasticSystem, y0, key, cfg: _Config):
         jnp.zeros((cfg.n_save, k, k), obs0.dtype),
         jnp.zeros((), jnp.int32),
     )
-    sums0 = _sums(obs0, valid0, shift, zeros)
 
-    def scan_body(sums, c):
+    def chunk_sums(c):
         obs, bad, valid = chunk(c)
-        return _sums(obs, valid, shift, sums), (obs if cfg.keep_paths else None, bad)
+        return _block_sums(obs, valid, shift), (obs if cfg.keep_paths else None, bad)
 
-    sums, (obs_rest, bad_rest) = jax.lax.scan(scan_body, sums0, jnp.arange(1, cfg.n_chunks))
+    if n_dev == 1:
+        sums = _accumulate(zeros, _block_sums(obs0, valid0, shift))
+
+        def scan_body(sums, c):
+            block_sums, out = chunk_sums(c)
+            return _accumulate(sums, block_sums), out
+
+        sums, (obs_rest, bad_rest) = jax.lax.scan(scan_body, sums, jnp.arange(1, cfg.n_chunks))
+        obs_all = None if obs_rest is None else jnp.concatenate([obs0[None], obs_rest])
+        bad_all = jnp.concatenate([bad0[None], bad_rest])
+    else:
+        mesh = jax.sharding.Mesh(np.asarray(cfg.devices), ("paths",))
+        spec = jax.sharding.PartitionSpec("paths")
+        sharded = jax.shard_map(
+            lambda c: jax.tree_util.tree_map(lambda a: a[None], chunk_sums(c[0])),
+            mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False,
+        )
+
+        def round_body(sums, r):
+            block_sums, out = sharded(r * n_dev + jnp.arange(n_dev))
+            flat = jax.tree_util.tree_map(lambda a: a.reshape(-1, *a.shape[2:]), block_sums)
+            return _accumulate(sums, flat), out
+
+        sums, (obs_all, bad_all) = jax.lax.scan(round_body, zeros, jnp.arange(cfg.n_chunks // n_dev))
+        obs_all = None if obs_all is None else obs_all.reshape(-1, *obs_all.shape[2:])
+        bad_all = bad_all.reshape(-1, cfg.chunk)
     s1, s2, s3, s4, n = sums
     nf = n.astype(s1.dtype)
     mean = shift + s1 / nf
@@ -395,10 +437,10 @@ def _run(system: StochasticSystem, y0, key, cfg: _Config):
     diag = jnp.diagonal(cov, axis1=1, axis2=2)
     mean_se = _safe_sqrt(diag / nf)
     cov_se = _safe_sqrt((_central_product_moment(s1 / nf, s2 / nf, s3 / nf, s4 / nf) - cov**2) / nf)
-    failed = jnp.concatenate([bad0[None], bad_rest]).reshape(-1)[: cfg.n_paths]
+    failed = bad_all.reshape(-1)[: cfg.n_paths]
     paths = None
     if cfg.keep_paths:
-        paths = jnp.concatenate([obs0[None], obs_rest]).reshape(total, cfg.n_save, -1)[: cfg.n_paths]
+        paths = obs_all.reshape(total, cfg.n_save, -1)[: cfg.n_paths]
     ts = jnp.linspace(cfg.t0, cfg.t1, cfg.n_save, dtype=y0.dtype)
     return ts, mean, cov, mean_se, cov_se, n, failed, paths
 
@@ -426,6 +468,8 @@ def simulate(
     on_failure: Literal["raise", "exclude"] = "raise",
     progress: bool = False,
     first_path: int = 0,
+    devices=None,
+    checkpoint: bool = True,
 ) -> Ensemble:
     """Integrate ``n_paths`` independent paths of ``system`` from ``y0``.
 
@@ -439,6 +483,12 @@ def simulate(
     - ``first_path``: index of the first path (a multiple of 64): paths
       ``first_path … first_path + n_paths − 1`` of the ensemble that ``key``
       defines, so a long run can be computed piecewise and resumed.
+    - ``checkpoint``: in reverse mode, recompute each save interval instead of
+      storing every step (memory ∝ save points, not steps; about one extra
+      forward pass).  ``False`` stores every step: faster, memory ∝ steps × chunk.
+    - ``devices``: the devices to shard chunks over (default: all of
+      ``jax.devices()``); one chunk per device at a time, statistics bitwise the
+      same as on one device.
     - ``on_failure``: ``'raise'`` raises :class:`SimulationError` (or, under a JAX
       transformation, a run-time error) if any path fails; ``'exclude'`` leaves
       failed paths out of the statistics and marks them in ``Ensemble.failed``.
@@ -515,11 +565,18 @@ def simulate(
     max_steps = _number("max_steps", max_steps, integer=True, positive=True)
     if info.interpretation not in ("any", system.interpretation):
         system = system.converted(info.interpretation)
+    devices = tuple(jax.devices() if devices is None else devices)
+    if not devices:
+        raise ValueError("devices is empty; pass None for all devices or a list of jax devices.")
+    n_chunks = math.ceil(n_paths / chunk_size)
+    if len(devices) > 1:
+        n_chunks = len(devices) * math.ceil(n_chunks / len(devices))
     cfg = _Config(
-        n_paths=n_paths, first_path=first_path, n_chunks=math.ceil(n_paths / chunk_size), chunk=chunk_size, n_steps=n_steps,
+        n_paths=n_paths, first_path=first_path, n_chunks=n_chunks, chunk=chunk_size, n_steps=n_steps,
         n_save=n_save, t0=t0, t1=t1, substeps=substeps, names=names, solver=solver,
         adaptive=bool(adaptive), rtol=rtol, atol=atol, max_steps=max_steps, keep_paths=bool(save.paths),
-        per_path_y0=y0.ndim == 2, progress=bool(progress),
+        per_path_y0=y0.ndim == 2, progress=bool(progress), devices=devices,
+        checkpoint=bool(checkpoint),
     )
     if progress:
         from tqdm.auto import tqdm
