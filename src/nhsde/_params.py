@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["AbstractParameters", "parameter"]
+__all__ = ["AbstractParameters", "parameter", "sqrt_intensity"]
 
 
 def parameter(*, default, lower: float | None = None, strict: bool = False, doc: str = ""):
@@ -105,3 +105,28 @@ class AbstractParameters(eqx.Module):
         return dataclasses.replace(self, **changes)
 
 
+
+
+@jax.custom_jvp
+def sqrt_intensity(nu):
+    """``√ν``: the amplitude of white noise of intensity ``ν`` (S0: ``E[VVᵀ] = ν δ``).
+
+    Every path scales like ``√ν``, so ``∂/∂ν`` of a path at ``ν = 0`` is infinite
+    and only statistics such as covariances (``∝ ν``) have a finite derivative
+    there, which a pathwise gradient cannot see.  Instead of a silent NaN, a
+    derivative with respect to ``ν`` taken at ``ν = 0`` raises; take it at
+    ``ν > 0`` (covariances are linear in ``ν``) or differentiate in ``√ν``.
+    """
+    return jnp.sqrt(nu)
+
+
+@sqrt_intensity.defjvp
+def _sqrt_intensity_jvp(primals, tangents):
+    (nu,), (dnu,) = primals, tangents
+    zero = nu == 0
+    root = eqx.error_if(
+        jnp.sqrt(nu), jnp.any(zero),
+        "the derivative with respect to a noise intensity nu at nu = 0 is singular (paths scale like √nu); "
+        "differentiate at nu > 0 or with respect to √nu.",
+    )
+    return root, jnp.where(zero, 0.0, dnu / (2 * jnp.where(zero, 1.0, root)))

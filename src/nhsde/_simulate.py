@@ -244,12 +244,14 @@ def _fixed_chunk(system, params, cfg, y0, key, chunk_index):
     def interval(carry, j):
         y, ok = carry
 
-        def body(state, i):
-            y, ok = state
-            y1, good = step(y, (j * per_save + i).astype(jnp.int32), keys)
-            return (y1, ok & good), None
+        def body(state, _):
+            y, ok, k = state
+            y1, good = step(y, k, keys)
+            return (y1, ok & good, k + 1), None
 
-        (y, ok), _ = jax.lax.scan(body, (y, ok), jnp.arange(per_save))
+        # the step counter rides in the carry: no per-step arrays, memory independent of steps
+        start = (j * per_save).astype(jnp.int32)
+        (y, ok, _), _ = jax.lax.scan(body, (y, ok, start), None, length=per_save)
         ok = ok & jnp.all(jnp.isfinite(y), axis=-1)
         if cfg.progress:
             jax.debug.callback(_tick, per_save)

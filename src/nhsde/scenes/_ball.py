@@ -21,7 +21,7 @@ from typing import ClassVar
 import equinox as eqx
 import jax.numpy as jnp
 
-from .._params import AbstractParameters, parameter
+from .._params import AbstractParameters, parameter, sqrt_intensity
 from .._system import StateLayout, StochasticSystem
 
 __all__ = ["BallOnVibratingPlane", "BallParameters", "ball_covariances"]
@@ -47,7 +47,7 @@ def _drift_with_position(t, y, p):
 
 
 def _diffusion_with_position(t, y, p):
-    g = jnp.sqrt(p.nu) * p.delta
+    g = sqrt_intensity(p.nu) * p.delta
     return jnp.concatenate([jnp.zeros((2, 2), y.dtype), g * jnp.eye(2, dtype=y.dtype)])
 
 
@@ -56,17 +56,17 @@ def _drift_velocity(t, y, p):
 
 
 def _diffusion_velocity(t, y, p):
-    return jnp.sqrt(p.nu) * p.delta * jnp.eye(2, dtype=y.dtype)
+    return sqrt_intensity(p.nu) * p.delta * jnp.eye(2, dtype=y.dtype)
 
 
 def _linear_with_position(p):
     """A of the drift A Z: ẋ = u, u̇ = −2ε u."""
-    z, i = jnp.zeros((2, 2)), jnp.eye(2)
+    z, i = jnp.zeros((2, 2), p.eps.dtype), jnp.eye(2, dtype=p.eps.dtype)
     return jnp.block([[z, i], [z, -2.0 * p.eps * i]])
 
 
 def _linear_velocity(p):
-    return -2.0 * p.eps * jnp.eye(2)
+    return -2.0 * p.eps * jnp.eye(2, dtype=p.eps.dtype)
 
 
 def _omega(ux_index, uy_index):

@@ -23,7 +23,7 @@ from typing import ClassVar
 import equinox as eqx
 import jax.numpy as jnp
 
-from .._params import AbstractParameters, parameter
+from .._params import AbstractParameters, parameter, sqrt_intensity
 from .._system import StateLayout, StochasticSystem
 
 __all__ = ["ChaplyginSleigh", "SleighParameters"]
@@ -44,7 +44,7 @@ def _velocity_drift(v, w, p):
 
 def _velocity_noise(p, dtype):
     j = p.inertia + p.mass * p.offset**2
-    return jnp.sqrt(p.nu) * jnp.diag(jnp.stack([1 / jnp.sqrt(p.mass), 1 / jnp.sqrt(j)]).astype(dtype))
+    return sqrt_intensity(p.nu) * jnp.diag(jnp.stack([1 / jnp.sqrt(p.mass), 1 / jnp.sqrt(j)]).astype(dtype))
 
 
 def _drift_full(t, y, p):
@@ -66,11 +66,11 @@ def _diffusion_reduced(t, y, p):
 
 def _linear_full(p):
     """Friction part of the drift: −2ε on (v, ω)."""
-    return jnp.diag(jnp.array([0.0, 0.0, 0.0, 1.0, 1.0])) * (-2.0 * p.eps)
+    return jnp.diag(jnp.array([0.0, 0.0, 0.0, 1.0, 1.0], p.eps.dtype)) * (-2.0 * p.eps)
 
 
 def _linear_reduced(p):
-    return -2.0 * p.eps * jnp.eye(2)
+    return -2.0 * p.eps * jnp.eye(2, dtype=p.eps.dtype)
 
 
 class ChaplyginSleigh(eqx.Module):
