@@ -18,5 +18,8 @@ from ._simulate import SimulationError as SimulationError
 from ._simulate import simulate as simulate
 from ._system import StateLayout as StateLayout
 from ._system import StochasticSystem as StochasticSystem
+from ._work_precision import WorkPrecisionRow as WorkPrecisionRow
+from ._work_precision import cheapest_setting as cheapest_setting
+from ._work_precision import work_precision as work_precision
 
 __version__ = "0.1.0"

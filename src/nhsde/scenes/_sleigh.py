@@ -73,12 +73,24 @@ def _linear_reduced(p):
     return -2.0 * p.eps * jnp.eye(2, dtype=p.eps.dtype)
 
 
+def _energy(v_index, w_index):
+    def energy(t, y, p):
+        """H = ½(m v² + J ω²), J = I + m a²."""
+        return 0.5 * (p.mass * y[v_index] ** 2 + (p.inertia + p.mass * p.offset**2) * y[w_index] ** 2)
+
+    return energy
+
+
+_ENERGY_FULL, _ENERGY_REDUCED = _energy(3, 4), _energy(0, 1)
+
+
 class ChaplyginSleigh(eqx.Module):
     """Scene: the noisy Chaplygin sleigh.
 
     ``drift=True`` keeps the contact point ``(x, y)`` and heading ``θ`` in the
     state; otherwise the state is ``(v, ω)`` alone (their dynamics do not involve
-    the position).
+    the position).  The observable ``energy`` is ``H``; in Itô calculus
+    ``dE[H]/dt = −4ε E[H] + ν``.
     """
 
     params: SleighParameters
@@ -96,13 +108,13 @@ class ChaplyginSleigh(eqx.Module):
                 ("x", "y", "theta", "v", "omega"),
                 ("dependent_coordinate", "dependent_coordinate", "independent_coordinate", "velocity", "velocity"),
             )
-            drift, diffusion, linear = _drift_full, _diffusion_full, _linear_full
+            drift, diffusion, linear, energy = _drift_full, _diffusion_full, _linear_full, _ENERGY_FULL
         else:
             layout = StateLayout(("v", "omega"), ("velocity", "velocity"))
-            drift, diffusion, linear = _drift_reduced, _diffusion_reduced, _linear_reduced
+            drift, diffusion, linear, energy = _drift_reduced, _diffusion_reduced, _linear_reduced, _ENERGY_REDUCED
         return StochasticSystem(
             drift_fn=drift, diffusion_fn=diffusion, params=self.params, layout=layout, noise_dim=2,
-            additive_noise=True, linear_drift=linear,
+            additive_noise=True, linear_drift=linear, observables=(("energy", energy),),
         )
 
     def initial_state(self):
