@@ -1,16 +1,18 @@
 """Ensemble integration of a :class:`StochasticSystem` on diffrax.
 
 Fixed steps: one ``lax.scan`` over steps of a diffrax solver (``solver.step``),
-vmapped over the paths of a chunk, driven by :class:`CounterBrownianPath`.
-(``diffeqsolve``'s adaptive loop costs ~2× here for nothing a fixed grid needs;
-measured in ``benchmarks/RESULTS.md``.)  Adaptive steps: ``diffeqsolve`` with a
+vmapped over blocks of paths and their lanes, each block's noise drawn once per
+step by the system's driver (``nhsde.noise``).  (``diffeqsolve``'s own loop on a
+batched state took 2.0× the time of a hand-fused scan in the design measurement
+recorded in ``benchmarks/RESULTS.md``.)  Adaptive steps: ``diffeqsolve`` with a
 ``PIDController`` and a ``VirtualBrownianTree`` per path.
 
 Paths run in chunks (``lax.scan`` over chunks), so memory is bounded by the
 chunk size whatever ``n_paths``; each chunk reduces its observations to sums
 for the first and second moments, so only ``n_save × k`` numbers per statistic
 survive unless per-path values are asked for.  Reverse mode recomputes each save
-interval (``jax.checkpoint``), so its memory grows with save points, not steps.
+interval (``jax.checkpoint``) when storing every step would cost more than
+about 1 GiB, so its memory is bounded by the steps per save interval.
 """
 
 from __future__ import annotations
@@ -450,6 +452,10 @@ def _run(system: StochasticSystem, y0, key, cfg: _Config):
 # ----------------------------------------------------------------------------- public
 
 
+def _residuals_too_large(steps_per_save, chunk, state_dim, dtype) -> bool:
+    return 10 * steps_per_save * chunk * state_dim * jnp.dtype(dtype).itemsize > 2**30
+
+
 def simulate(
     system: StochasticSystem,
     y0,
@@ -471,7 +477,7 @@ def simulate(
     progress: bool = False,
     first_path: int = 0,
     devices=None,
-    checkpoint: bool = True,
+    checkpoint: bool | None = None,
 ) -> Ensemble:
     """Integrate ``n_paths`` independent paths of ``system`` from ``y0``.
 
@@ -485,9 +491,11 @@ def simulate(
     - ``first_path``: index of the first path (a multiple of 64): paths
       ``first_path … first_path + n_paths − 1`` of the ensemble that ``key``
       defines, so a long run can be computed piecewise and resumed.
-    - ``checkpoint``: in reverse mode, recompute each save interval instead of
-      storing every step (memory ∝ save points, not steps; about one extra
-      forward pass).  ``False`` stores every step: faster, memory ∝ steps × chunk.
+    - ``checkpoint``: in reverse mode, ``True`` recomputes each save interval
+      instead of storing every step (memory ∝ steps per save interval, about one
+      extra forward pass); ``False`` stores every step (faster, memory ∝ steps ×
+      chunk); ``None`` stores while the estimated residuals (≈ 10 × steps per
+      interval × chunk × state size × bytes) stay under 1 GiB.
     - ``devices``: the devices to shard chunks over (default: all of
       ``jax.devices()``); one chunk per device at a time, statistics bitwise the
       same as on one device.
@@ -578,7 +586,8 @@ def simulate(
         n_save=n_save, t0=t0, t1=t1, substeps=substeps, names=names, solver=solver,
         adaptive=bool(adaptive), rtol=rtol, atol=atol, max_steps=max_steps, keep_paths=bool(save.paths),
         per_path_y0=y0.ndim == 2, progress=bool(progress), devices=devices,
-        checkpoint=bool(checkpoint),
+        checkpoint=_residuals_too_large(n_steps // (n_save - 1), chunk_size, system.state_dim, y0.dtype)
+        if checkpoint is None else bool(checkpoint),
     )
     if progress:
         from tqdm.auto import tqdm
