@@ -24,6 +24,14 @@ EXPECTED_PNGS = {
         "ball_gradients.png",
         "ball_u_histogram.png",
     },
+    "fitting_friction_noise.py": {
+        "fitting_ball_covariances.png",
+        "fitting_ball_landscape.png",
+        "fitting_calibration.png",
+        "fitting_sleigh.png",
+    },
+    "work_precision.py": {"work_precision.png"},
+    "controlled_systems.py": {"rod_energy_work.png", "gauss_compulsion.png", "beghin_servo_vs_contact.png"},
 }
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"

@@ -6,8 +6,12 @@ drift statistics, differentiable in every physical parameter.
 """
 
 from . import noise as noise
+from . import mechanics as mechanics
 from . import scenes as scenes
 from . import statistics as statistics
+from . import fit as fit
+from . import bodies as bodies
+from . import analysis as analysis
 from ._params import AbstractParameters as AbstractParameters
 from ._params import parameter as parameter
 from ._params import sqrt_intensity as sqrt_intensity

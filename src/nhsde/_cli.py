@@ -1,4 +1,9 @@
-"""Command line: ``nhsde scenes`` and ``nhsde simulate SCENE``.
+"""Command line: ``nhsde scenes``, ``nhsde simulate SCENE``, ``nhsde simulate --config`` and ``nhsde fit --config``.
+
+``nhsde simulate --config run.toml [--out run.nc]`` runs the file's description
+(see ``nhsde._runs``) in pieces, writing a netCDF file after each; run it again
+after an interruption and it resumes.  ``nhsde fit --config fit.toml [--out
+fit.nc]`` fits parameters to a run file through simulation.
 
 ``nhsde simulate`` prints the drift statistics at the final time with their
 Monte-Carlo standard errors and their derivatives with respect to ``eps`` and
@@ -51,7 +56,63 @@ def _fmt(mean, se):
     return f"{float(mean): .6g} ± {float(se):.2g}"
 
 
+RUN_EXAMPLE = """\
+a run file (TOML; every key is checked, unknown keys are errors):
+
+  scene = "ball-on-vibrating-plane"   # see `nhsde scenes`
+  seed = 0                            # the key: jax.random.key(seed)
+  precision = "float64"               # or "float32"
+
+  [options]                           # the scene's flags
+  drift = true
+
+  [parameters]                        # unnamed parameters keep their defaults
+  eps = 0.8
+  nu = 1.5
+
+  [initial_state]                     # optional: components of the state
+  u_x = 0.0
+
+  [solver]
+  name = "sra1"                       # euler, milstein, heun, sra1, ...
+  dt = 0.01
+  t0 = 0.0
+  t1 = 10.0
+
+  [paths]
+  n = 100000
+  chunk = 8192                        # paths per piece written (a multiple of 64)
+
+  [statistics]
+  save = ["x", "y"]                   # default: the whole state
+  save_points = 11
+  keep_paths = false                  # true stores every path (needed to fit with full covariances)
+
+Run it again after an interruption to resume; the result is the same as an uninterrupted run.
+"""
+
+FIT_EXAMPLE = """\
+a fit file: the run-file keys scene, seed (the model's key: not the data's), precision,
+[options], [parameters] (start values), [initial_state], [solver] (name, dt), [paths] (n: model
+paths), [statistics] (save: the components to fit, default all), and
+
+  [fit]
+  data = "run.nc"                     # a run file, relative to the fit file
+  vary = ["eps", "nu"]
+  max_steps = 100
+"""
+
+_LEGACY_DEFAULTS = {"paths": 4096, "t1": 10.0, "dt": 0.01, "solver": "euler", "seed": 0, "save_points": 11}
+
+
 def _cmd_simulate(args):
+    if args.config is not None:
+        return _cmd_simulate_config(args)
+    if args.scene is None:
+        raise SystemExit("nhsde simulate: give a SCENE (see `nhsde scenes`) or --config FILE.")
+    for name, default in _LEGACY_DEFAULTS.items():
+        if getattr(args, name) is None:
+            setattr(args, name, default)
     import jax
 
     if args.x64:
@@ -130,27 +191,103 @@ def _cmd_simulate(args):
 
 
 def _versions():
-    from importlib.metadata import version
+    from ._runs import versions
 
-    return {pkg: version(pkg) for pkg in ("nhsde", "jax", "jaxlib", "diffrax", "equinox")}
+    return versions()
+
+
+def _config_run(args, kind):
+    """Load and validate ``--config`` (x64 on: runs keep float64 sums)."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from ._runs import ConfigError, load_config
+
+    try:
+        return load_config(args.config, kind)
+    except ConfigError as e:
+        raise SystemExit(f"nhsde {kind}: {e}") from None
+
+
+def _cmd_simulate_config(args):
+    from pathlib import Path
+
+    from ._runs import ConfigError, run
+    from ._simulate import SimulationError
+
+    given = [f"--{n.replace('_', '-')}" for n in _LEGACY_DEFAULTS if getattr(args, n) is not None]
+    given += ["--set"] if args.set else []
+    given += ["--x64"] if args.x64 else []
+    given += ["SCENE"] if args.scene is not None else []
+    if given:
+        raise SystemExit(f"nhsde simulate: {', '.join(given)} cannot be combined with --config; set them in the file.")
+    config = _config_run(args, "simulate")
+    out = Path(args.out) if args.out else Path(args.config).with_suffix(".nc")
+
+    def report(k):
+        print(f"piece {k + 1} written to {out}", flush=True)
+
+    try:
+        ds = run(config, out, on_piece=report, progress=args.progress)
+    except (ConfigError, ValueError, SimulationError) as e:
+        raise SystemExit(f"nhsde simulate: {e}") from None
+    names = list(ds["name"].values)
+    print(f"\n{ds.attrs['scene']}: {ds.attrs['n_used']} paths used, {ds.attrs['n_failed']} failed; "
+          f"git {ds.attrs['git_revision']}")
+    print(f"at t = {float(ds['time'][-1]):g}  (mean ± standard error)")
+    for i, a in enumerate(names):
+        print(f"  m[{a}] = {_fmt(ds['mean'][-1, i], ds['mean_se'][-1, i])}")
+    for i, a in enumerate(names):
+        for j, b in enumerate(names[: i + 1]):
+            print(f"  K[{a},{b}] = {_fmt(ds['cov'][-1, i, j], ds['cov_se'][-1, i, j])}")
+    print(f"\nsaved {out}")
+    return 0
+
+
+def _cmd_fit(args):
+    from pathlib import Path
+
+    from ._runs import ConfigError, run_fit
+    from ._simulate import SimulationError
+
+    config = _config_run(args, "fit")
+    out = Path(args.out) if args.out else Path(args.config).with_suffix(".nc")
+    try:
+        result, _ = run_fit(config, out)
+    except (ConfigError, ValueError, SimulationError, FloatingPointError) as e:
+        raise SystemExit(f"nhsde fit: {e}") from None
+    print(result)
+    print(f"\nsaved {out}")
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="nhsde", description="Stochastic nonholonomic mechanics in JAX.")
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("scenes", help="list the scenes and their parameters")
-    sim = sub.add_parser("simulate", help="simulate a scene; print drift statistics and their gradients")
-    sim.add_argument("scene", help="scene name, see `nhsde scenes`")
-    sim.add_argument("--paths", type=int, default=4096, help="number of paths (default 4096)")
-    sim.add_argument("--t1", type=float, default=10.0, help="final time (default 10)")
-    sim.add_argument("--dt", type=float, default=0.01, help="time step (default 0.01)")
-    sim.add_argument("--solver", default="euler", help="euler, milstein, heun or sra1 (default euler)")
-    sim.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    sim.add_argument("--save-points", type=int, default=11, help="save times from 0 to t1 (default 11)")
+    sim = sub.add_parser(
+        "simulate", help="simulate a scene; print drift statistics and their gradients, or run a --config file",
+        epilog=RUN_EXAMPLE, formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sim.add_argument("scene", nargs="?", help="scene name, see `nhsde scenes` (or use --config)")
+    sim.add_argument("--config", help="a TOML run file; runs (or resumes) it, writing netCDF to --out")
+    sim.add_argument("--paths", type=int, help="number of paths (default 4096)")
+    sim.add_argument("--t1", type=float, help="final time (default 10)")
+    sim.add_argument("--dt", type=float, help="time step (default 0.01)")
+    sim.add_argument("--solver", help="euler, milstein, heun or sra1 (default euler)")
+    sim.add_argument("--seed", type=int, help="random seed (default 0)")
+    sim.add_argument("--save-points", type=int, help="save times from 0 to t1 (default 11)")
     sim.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="set a scene parameter")
-    sim.add_argument("--out", help="save the results to this .npz file")
+    sim.add_argument("--out", help="save the results to this file (.npz for SCENE; netCDF for --config, "
+                     "default the config's name with .nc)")
     sim.add_argument("--x64", action="store_true", help="compute in float64")
     sim.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
+    fit = sub.add_parser(
+        "fit", help="fit parameters to a run file through simulation (--config FILE)",
+        epilog=FIT_EXAMPLE, formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    fit.add_argument("--config", required=True, help="a TOML fit file")
+    fit.add_argument("--out", help="netCDF file for the estimates (default the config's name with .nc)")
     return parser
 
 
@@ -158,6 +295,8 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     if args.command == "scenes":
         return _cmd_scenes(args)
+    if args.command == "fit":
+        return _cmd_fit(args)
     return _cmd_simulate(args)
 
 

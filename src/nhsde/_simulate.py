@@ -66,7 +66,7 @@ SOLVERS: dict[str, SolverInfo] = {
         lambda s: dfx.EulerHeun(), "stratonovich", False, dfx.BrownianIncrement, 0.5, 1.0, "Euler–Heun (Stratonovich)"
     ),
     "sra1": SolverInfo(
-        lambda s: dfx.SRA1(), "any", True, dfx.SpaceTimeLevyArea, 1.5, 1.5, "SRA1 stochastic Runge–Kutta (additive noise)"
+        lambda s: dfx.SRA1(scan_kind="lax"), "any", True, dfx.SpaceTimeLevyArea, 1.5, 1.5, "SRA1 stochastic Runge–Kutta (additive noise)"
     ),
     "exponential": SolverInfo(
         _exponential, "ito", False, dfx.BrownianIncrement, 0.5, 1.0,

@@ -13,3 +13,8 @@ from ._levy import Levy as Levy
 from ._levy import NormalJumps as NormalJumps
 from ._levy import ParetoJumps as ParetoJumps
 from ._levy import driver_intensity as driver_intensity
+from ._filters import AbstractShapingFilter as AbstractShapingFilter
+from ._filters import FilteredParameters as FilteredParameters
+from ._filters import OrnsteinUhlenbeck as OrnsteinUhlenbeck
+from ._filters import ShapingFilter as ShapingFilter
+from ._filters import with_shaping_filter as with_shaping_filter

@@ -7,8 +7,9 @@ intensity (variance per unit time, S0 (1.4)) is ``ν = ν₀ + λ E[c²]``.
 
 Exact in law on the step grid.  On base step ``k`` of a block, one uniform per
 lane and channel gives the jump count ``N ~ Poisson(λ dt)`` by inversion of its
-survival function ``P(N > n) = P(n + 1, λ dt)`` (regularised incomplete gamma);
-counts above ``max_jumps`` are cut to ``max_jumps``, and that neglected
+survival function ``P(N > n)`` (summed from the top of the probability mass
+function, so small probabilities keep their relative accuracy); counts above
+``max_jumps`` are cut to ``max_jumps``, and that neglected
 probability ``P(N > max_jumps)`` is checked to be below :data:`TRUNCATION` on
 every step (a run-time error otherwise).  The sum of the ``N`` jumps is then
 drawn exactly: in closed form where the law allows (normal jumps), else as the
@@ -30,7 +31,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.random as jr
-from jax.scipy.special import gammainc
 from jaxtyping import Array
 
 from .._params import AbstractParameters, parameter
@@ -59,6 +59,25 @@ def _count_dtype():
     return jnp.result_type(float)
 
 
+def _poisson_survival(mu, max_jumps: int):
+    """``P(N > n)`` for ``n = 0 … max_jumps``, ``N ~ Poisson(μ)``: shape ``(*μ.shape, max_jumps + 1)``.
+
+    The probabilities ``p_j`` (in log space) are summed from ``j = max_jumps + 24``
+    down, and the rest is bounded by Chernoff's ``P(N ≥ m) ≤ e^{−μ}(eμ/m)^m``
+    (``m > μ``; 1 otherwise), so the result is never below the truth.
+    """
+    m = max_jumps + 25
+    j = jnp.arange(m, dtype=mu.dtype)
+    mu = mu[..., None]
+    positive = mu > 0
+    log_mu = jnp.log(jnp.where(positive, mu, 1.0))
+    p = jnp.where(positive, jnp.exp(-mu + j * log_mu - jax.lax.lgamma(j + 1)), (j == 0).astype(mu.dtype))
+    bound = jnp.where(mu < m, jnp.exp(-mu + m * (1 + log_mu - jnp.log(jnp.asarray(m, mu.dtype)))), 1.0)
+    tail = jnp.where(positive, bound, 0.0)
+    above = jnp.cumsum(p[..., ::-1], axis=-1)[..., ::-1]  # above[i] = Σ_{j ≥ i} p_j
+    return above[..., 1 : max_jumps + 2] + tail
+
+
 class AbstractJumpLaw(AbstractParameters):
     """Law of the jump sizes ``c`` (one independent law per channel; leaves broadcast over channels)."""
 
@@ -79,7 +98,10 @@ class NormalJumps(AbstractJumpLaw):
 
     def moment(self, k):
         m, s = self.mean, self.std
-        return {1: m, 2: m**2 + s**2, 3: m**3 + 3 * m * s**2, 4: m**4 + 6 * m**2 * s**2 + 3 * s**4}[k]
+        moments = {1: m, 2: m**2 + s**2, 3: m**3 + 3 * m * s**2, 4: m**4 + 6 * m**2 * s**2 + 3 * s**4}
+        if k not in moments:
+            raise ValueError(f"NormalJumps.moment: k={k}; moments 1–4 are offered.")
+        return moments[k]
 
     def sum_of_jumps(self, key, counts, max_jumps, dtype):
         n = counts.astype(dtype)
@@ -108,8 +130,11 @@ class ParetoJumps(AbstractJumpLaw):
             )
 
     def moment(self, k):
-        even = self.scale**k * jnp.where(self.tail > k, self.tail / (self.tail - k), jnp.inf)
-        return even if k % 2 == 0 else jnp.zeros_like(even)
+        """``E[c^k]``: ``scale^k tail/(tail − k)`` for even ``k < tail``, 0 for odd ``k < tail``, else ``inf``/``nan``."""
+        exists = self.tail > k
+        if k % 2:
+            return jnp.where(exists, 0.0, jnp.nan) * self.scale
+        return self.scale**k * jnp.where(exists, self.tail / (self.tail - k), jnp.inf)
 
     def sum_of_jumps(self, key, counts, max_jumps, dtype):
         k_size, k_sign = jr.split(key)
@@ -145,30 +170,29 @@ class CompoundPoisson(AbstractDriver, AbstractParameters):
         return self.intensity * self.law.moment(2)
 
     def neglected_probability(self, dt) -> Array:
-        """``P(N > max_jumps)`` for one step ``dt``, per channel: the truncation of the count."""
+        """``P(N > max_jumps)`` for one step ``dt``, per channel: the truncation of the count (never underestimated)."""
         mu = jnp.asarray(self.intensity, _count_dtype()) * jnp.asarray(dt, _count_dtype())
-        return gammainc(jnp.asarray(self.max_jumps + 1, mu.dtype), mu)
+        return _poisson_survival(mu, self.max_jumps)[..., -1]
 
     def block_increment(self, key, k0, dt, shape, substeps, levy_area):
         driver = self.validated()
         law = driver.law.validated()
         dtype = dt.dtype
-        neglected = jax.lax.stop_gradient(driver.neglected_probability(dt))
+        rate = jax.lax.stop_gradient(driver.intensity).astype(_count_dtype())
+        mu = jnp.broadcast_to(rate * dt.astype(_count_dtype()), shape)
+        survival = _poisson_survival(mu, self.max_jumps)  # P(N > n), n = 0 … max_jumps
         intensity = eqx.error_if(
             driver.intensity,
-            jnp.any(neglected > TRUNCATION),
+            jnp.any(survival[..., -1] > TRUNCATION),
             f"CompoundPoisson: more than max_jumps={self.max_jumps} jumps in one step has probability "
             f"> {TRUNCATION:g} (intensity·dt too large); increase max_jumps or reduce dt.",
         )
-        mu = jnp.broadcast_to(jax.lax.stop_gradient(intensity).astype(_count_dtype()) * dt.astype(_count_dtype()), shape)
-        # P(N > n) for n = 0 … max_jumps − 1
-        survival = gammainc(jnp.arange(1, self.max_jumps + 1, dtype=mu.dtype), mu[..., None])
         stream = jr.fold_in(key, JUMP_STREAM)
 
         def base_step(k):
             k_count, k_size = jr.split(jr.fold_in(stream, k))
             u = jr.uniform(k_count, (BLOCK,) + shape, _count_dtype())
-            counts = jnp.sum(u[..., None] < survival, axis=-1)
+            counts = jnp.sum(u[..., None] < survival[..., :-1], axis=-1)
             return law.sum_of_jumps(k_size, counts, self.max_jumps, dtype)
 
         ks = k0 * substeps + jnp.arange(substeps, dtype=jnp.int32)

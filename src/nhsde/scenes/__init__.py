@@ -10,10 +10,28 @@ from ._ball import BallParameters as BallParameters
 from ._ball import ball_covariances as ball_covariances
 from ._sleigh import ChaplyginSleigh as ChaplyginSleigh
 from ._sleigh import SleighParameters as SleighParameters
+from ._beghin import BeghinParameters as BeghinParameters
+from ._beghin import BeghinPlate as BeghinPlate
+from ._contact_oscillator import ContactOscillator as ContactOscillator
+from ._contact_oscillator import ContactOscillatorParameters as ContactOscillatorParameters
+from ._disk import DiskParameters as DiskParameters
+from ._disk import VerticalRollingDisk as VerticalRollingDisk
+from ._rolling_ball import BallFromLagrangian as BallFromLagrangian
+from ._rolling_ball import RollingBallParameters as RollingBallParameters
+from ._rotating_rod import BeadOnRotatingRod as BeadOnRotatingRod
+from ._rotating_rod import RodParameters as RodParameters
+from ._spec_scene import AbstractSpecScene as AbstractSpecScene
+from ._spec_sleigh import ChaplyginSleighFromSpec as ChaplyginSleighFromSpec
 
 SCENES = {
     "ball-on-vibrating-plane": BallOnVibratingPlane,
     "chaplygin-sleigh": ChaplyginSleigh,
+    "chaplygin-sleigh-from-spec": ChaplyginSleighFromSpec,
+    "vertical-rolling-disk": VerticalRollingDisk,
+    "contact-oscillator": ContactOscillator,
+    "beghin-plate": BeghinPlate,
+    "ball-from-lagrangian": BallFromLagrangian,
+    "bead-on-rotating-rod": BeadOnRotatingRod,
 }
 """Scene names (as the CLI spells them) → scene classes."""
 
@@ -24,3 +42,18 @@ def get_scene(name: str):
         return SCENES[name]
     except KeyError:
         raise ValueError(f"unknown scene {name!r}; known scenes: {', '.join(SCENES)}.") from None
+
+from ._body_on_vibrating_plane import BodyOnVibratingPlane as BodyOnVibratingPlane
+from ._body_on_vibrating_plane import VibratingPlaneParameters as VibratingPlaneParameters
+from ._body_on_vibrating_plane import revolution_measure_s0 as revolution_measure_s0
+from ._body_on_vibrating_plane import stationary_nutation_density as stationary_nutation_density
+from ._chaplygin_ball import ChaplyginBall as ChaplyginBall
+from ._chaplygin_ball import ChaplyginBallParameters as ChaplyginBallParameters
+from ._chaplygin_ball import chaplygin_ball_measure as chaplygin_ball_measure
+from ._chaplygin_ball import chaplygin_ball_omega as chaplygin_ball_omega
+from ._rolling import FlatBaseOnSphere as FlatBaseOnSphere
+from ._rolling import RollingBody as RollingBody
+
+SCENES["body-on-vibrating-plane"] = BodyOnVibratingPlane
+SCENES["chaplygin-ball"] = ChaplyginBall
+from ._body_on_vibrating_plane import sample_stationary as sample_stationary

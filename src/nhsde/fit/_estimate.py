@@ -1,0 +1,352 @@
+"""Estimate physical parameters from observed statistics, with optax.
+
+The estimator is the minimum-distance (Gaussian quasi-likelihood) estimator of
+the statistics ``s`` of :mod:`._observations`:
+
+    θ̂ = argmin_θ  ½ (s_obs − s(θ))ᵀ Σ_obs⁻¹ (s_obs − s(θ)),
+
+where ``s(θ)`` comes from a model: :class:`Simulated` (``nhsde.simulate`` with a
+fixed key — common random numbers make ``s(θ)`` a smooth function, and the
+simulator is differentiable in every parameter leaf), :class:`MomentEquations`
+(the normal-approximation method) or :class:`ClosedForm` (closed forms).  Positive parameters are optimised as
+``log(θ − lower)``, so the search never leaves their range.
+
+Uncertainty: with ``G = ∂s/∂θ`` at ``θ̂`` and the Fisher information
+``H = Gᵀ Σ_obs⁻¹ G`` of the Gaussian likelihood of ``s``,
+
+    Cov(θ̂) = H⁻¹ + H⁻¹ Gᵀ Σ_obs⁻¹ Σ_model Σ_obs⁻¹ G H⁻¹,
+
+the second term being the Monte-Carlo noise ``Σ_model`` of a simulated model
+(about ``H⁻¹ n_obs/n_sim``; zero for moment equations and closed forms).  ``χ² = rᵀ(Σ_obs + Σ_model)⁻¹ r``
+with ``S − p`` degrees of freedom tests whether the model fits at all.
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+import functools
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jaxtyping import Array, PRNGKeyArray
+
+from .._simulate import Save, simulate
+from .._system import StochasticSystem
+from ._observations import (
+    Observations,
+    statistic_covariance,
+    statistic_size,
+    statistic_vector,
+)
+
+__all__ = ["AbstractStatisticsModel", "ClosedForm", "FitResult", "MomentEquations", "Simulated", "estimate"]
+
+
+class AbstractStatisticsModel(eqx.Module):
+    """Model means and covariances of named components at given times."""
+
+    @abc.abstractmethod
+    def moments(self, system: StochasticSystem, ts: tuple[float, ...], names: tuple[str, ...]):
+        """``(mean (T, k), cov (T, k, k))``, differentiable in ``system.params``."""
+
+    @abc.abstractmethod
+    def noise_covariance(self, system: StochasticSystem, ts: tuple[float, ...], names: tuple[str, ...]) -> np.ndarray:
+        """Covariance of the model's own statistic vector (its Monte-Carlo error)."""
+
+
+def _save_grid(ts, t0: float, model: str) -> np.ndarray:
+    """Indices ``j`` of the observation times ``ts = t0 + j·h`` on an equally spaced save grid."""
+    ts = np.asarray(ts, np.float64)
+    h = ts[0] - t0 if len(ts) == 1 else ts[1] - ts[0]
+    index = np.round((ts - t0) / h).astype(int) if h > 0 else None
+    if index is None or np.any(np.abs(t0 + index * h - ts) > 1e-9 * max(1.0, abs(ts[-1]))):
+        raise ValueError(f"{model}: observation times {ts.tolist()} are not on an equally spaced grid from t0={t0}.")
+    return index
+
+
+class Simulated(AbstractStatisticsModel):
+    """Statistics of ``n_paths`` paths of ``nhsde.simulate`` from ``y0`` with ``key``.
+
+    The observation times must lie on an equally spaced grid ``t0 + j·h``; the
+    run saves on that grid and ``dt`` must divide ``h``.  Use a key other than the
+    data's: the model's Monte-Carlo noise then enters the reported errors.
+    """
+
+    y0: Array
+    key: PRNGKeyArray
+    n_paths: int = eqx.field(static=True)
+    dt: float = eqx.field(static=True)
+    solver: str = eqx.field(static=True, default="euler")
+    t0: float = eqx.field(static=True, default=0.0)
+
+    def _run(self, system, ts, names, paths):
+        index = _save_grid(ts, self.t0, "Simulated")
+        ens = simulate(
+            system, self.y0, self.key, n_paths=self.n_paths, t0=self.t0, t1=float(ts[-1]), dt=self.dt,
+            solver=self.solver, save=Save(names=names, n=int(index[-1]) + 1, paths=paths),
+        )
+        return ens, index
+
+    def moments(self, system, ts, names):
+        ens, index = self._run(system, ts, names, paths=False)
+        return ens.mean[index], ens.cov[index]
+
+    def noise_covariance(self, system, ts, names):
+        ens, index = self._run(system, ts, names, paths=True)
+        return statistic_covariance(np.asarray(ens.paths)[:, index])
+
+
+class MomentEquations(AbstractStatisticsModel):
+    """Statistics from the normal-approximation moment equations (S0 §6), exact for linear systems.
+
+    ``nhsde.statistics.normal_approximation`` from ``y0`` (covariance ``cov0``,
+    default 0) with Dopri8 steps ``dt``; no Monte-Carlo noise, but for a
+    nonlinear system the Gaussian closure's bias enters the estimates — the
+    ``chi2`` of the fit shows whether it matters at the data's precision.
+    """
+
+    y0: Array
+    cov0: Array | None = None
+    dt: float = eqx.field(static=True, default=0.01)
+    t0: float = eqx.field(static=True, default=0.0)
+    order: int = eqx.field(static=True, default=5)
+
+    def moments(self, system, ts, names):
+        from ..statistics import normal_approximation
+
+        index = _save_grid(ts, self.t0, "MomentEquations")
+        ens = normal_approximation(
+            system, self.y0, self.cov0, t0=self.t0, t1=float(ts[-1]), dt=self.dt,
+            save=Save(names=names, n=int(index[-1]) + 1), order=self.order,
+        )
+        return ens.mean[index], ens.cov[index]
+
+    def noise_covariance(self, system, ts, names):
+        return _no_noise(ts, names)
+
+
+class ClosedForm(AbstractStatisticsModel):
+    """Statistics from ``fn(params, ts) -> (mean (T, k), cov (T, k, k))``: closed forms, moment equations.
+
+    ``fn`` must return the components in the order of the observed names.
+    """
+
+    fn: Callable = eqx.field(static=True)
+
+    def moments(self, system, ts, names):
+        mean, cov = self.fn(system.params, jnp.asarray(ts))
+        t, k = len(ts), len(names)
+        if jnp.shape(mean) != (t, k) or jnp.shape(cov) != (t, k, k):
+            raise ValueError(
+                f"ClosedForm: fn returned mean {jnp.shape(mean)} and cov {jnp.shape(cov)}; expected ({t}, {k}) "
+                f"and ({t}, {k}, {k}) for {t} times and names {names}."
+            )
+        return mean, cov
+
+    def noise_covariance(self, system, ts, names):
+        return _no_noise(ts, names)
+
+
+def _no_noise(ts, names) -> np.ndarray:
+    size = statistic_size(len(ts), len(names))
+    return np.zeros((size, size))
+
+
+class _Problem(eqx.Module):
+    """One fit: the loss in the unconstrained variables ``φ`` (θ = lower + e^φ, or θ = φ)."""
+
+    system: StochasticSystem
+    model: AbstractStatisticsModel
+    observed: Array
+    whiten: Array  # L⁻¹ with Σ_obs = L Lᵀ
+    ts: tuple[float, ...] = eqx.field(static=True)
+    names: tuple[str, ...] = eqx.field(static=True)
+    vary: tuple[str, ...] = eqx.field(static=True)
+    lower: tuple[float | None, ...] = eqx.field(static=True)
+
+    def theta(self, phi):
+        return jnp.stack([p if lo is None else lo + jnp.exp(p) for p, lo in zip(phi, self.lower)])
+
+    def system_at(self, theta) -> StochasticSystem:
+        params = self.system.params.replace(**{n: theta[i] for i, n in enumerate(self.vary)})
+        return eqx.tree_at(lambda s: s.params, self.system, params)
+
+    def statistics(self, theta):
+        moments = self.model.moments(self.system_at(theta), self.ts, self.names)
+        return statistic_vector(*moments).astype(self.observed.dtype)
+
+    def loss(self, phi):
+        r = self.whiten @ (self.statistics(self.theta(phi)) - self.observed)
+        return 0.5 * jnp.sum(r**2)
+
+
+@eqx.filter_jit
+def _step(phi, state, problem: _Problem, optimizer, reuse: bool):
+    if reuse:  # line-search optimizers keep the value and gradient at the accepted point
+        value, grad = optax.value_and_grad_from_state(problem.loss)(phi, state=state)
+    else:
+        value, grad = jax.value_and_grad(problem.loss)(phi)
+    with jax.numpy_dtype_promotion("standard"):  # optax's L-BFGS mixes int32 and int64 counters
+        updates, state = optimizer.update(grad, state, phi, value=value, grad=grad, value_fn=problem.loss)
+    return optax.apply_updates(phi, updates), state, value, grad
+
+
+@eqx.filter_jit
+def _jacobian(theta, problem: _Problem, forward: bool):
+    return (jax.jacfwd if forward else jax.jacrev)(problem.statistics)(theta)
+
+
+def _statistics_jacobian(theta, problem: _Problem):
+    """``∂s/∂θ``: forward mode (a few parameters), reverse mode where a solver has no JVP (diffrax's SRK scan)."""
+    try:
+        return _jacobian(theta, problem, True)
+    except TypeError as e:
+        if "custom_vjp" not in str(e):
+            raise
+        return _jacobian(theta, problem, False)
+
+
+@functools.cache
+def _lbfgs():
+    return optax.lbfgs()
+
+
+@dataclasses.dataclass(frozen=True)
+class FitResult:
+    """Estimates ``values`` of the parameters ``names``, their covariance and the fit's diagnostics.
+
+    ``history[i] = (loss, *values)`` at optimizer step ``i``; ``chi2`` with ``dof``
+    degrees of freedom measures the misfit (``chi2 ≈ dof`` when the model fits).
+    """
+
+    names: tuple[str, ...]
+    values: np.ndarray
+    cov: np.ndarray
+    init: np.ndarray
+    chi2: float
+    dof: int
+    steps: int
+    converged: bool
+    history: np.ndarray
+
+    @property
+    def se(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.cov))
+
+    @property
+    def params(self) -> dict[str, float]:
+        return {n: float(v) for n, v in zip(self.names, self.values)}
+
+    def __str__(self):
+        rows = [f"{'parameter':<12}{'estimate':>14}{'std. error':>14}{'start':>12}"]
+        rows += [f"{n:<12}{v:>14.6g}{s:>14.3g}{i:>12.4g}" for n, v, s, i in zip(self.names, self.values, self.se, self.init)]
+        rows.append(
+            f"chi2 = {self.chi2:.2f} on {self.dof} degrees of freedom; {self.steps} optimizer steps"
+            + ("" if self.converged else " (NOT converged)")
+        )
+        return "\n".join(rows)
+
+
+def _vary_bounds(params, vary):
+    fields = {f.name: f for f in dataclasses.fields(params)}
+    leaves = [n for n, f in fields.items() if "lower" in f.metadata]
+    lower = []
+    for name in vary:
+        if name not in leaves:
+            raise ValueError(f"vary: {name!r} is not a parameter of {type(params).__name__}; parameters: {leaves}.")
+        lo = fields[name].metadata["lower"]
+        lower.append(None if lo is None else float(lo))
+    return tuple(lower)
+
+
+def estimate(
+    system: StochasticSystem,
+    observed: Observations,
+    model: AbstractStatisticsModel,
+    *,
+    vary: tuple[str, ...] = ("eps", "nu"),
+    init: dict[str, float] | None = None,
+    optimizer: optax.GradientTransformation | None = None,
+    max_steps: int = 100,
+    gtol: float = 1e-4,
+) -> FitResult:
+    """Fit the parameters ``vary`` of ``system`` to ``observed`` statistics through ``model``.
+
+    - ``init``: start values (default: the system's current values).
+    - ``optimizer``: any optax transformation (default ``optax.lbfgs()`` with its
+      zoom line search); it minimises the loss in ``log(θ − lower)``.
+    - stops when the gradient of the loss (a χ²/2) in ``φ = log(θ − lower)``
+      falls below ``gtol`` in norm — a Newton step of at most about
+      ``gtol·se(φ)`` standard errors — or after ``max_steps`` steps.
+    """
+    if not isinstance(system, StochasticSystem):
+        raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
+    if not isinstance(observed, Observations):
+        raise TypeError(f"observed={type(observed).__name__}; expected nhsde.fit.Observations.")
+    if not isinstance(model, AbstractStatisticsModel):
+        raise TypeError(
+            f"model={type(model).__name__}; expected nhsde.fit.Simulated, MomentEquations or ClosedForm."
+        )
+    vary = tuple(vary)
+    if not vary or len(set(vary)) != len(vary):
+        raise ValueError(f"vary={vary}; name each parameter to fit once.")
+    lower = _vary_bounds(system.params, vary)
+    system.observe(observed.names)  # checks the names
+    init = {} if init is None else dict(init)
+    unknown = sorted(set(init) - set(vary))
+    if unknown:
+        raise ValueError(f"init: {unknown} are not among vary={vary}.")
+    theta0 = np.array([float(init.get(n, getattr(system.params, n))) for n in vary])
+    for name, value, lo in zip(vary, theta0, lower):
+        if lo is not None and not value > lo:
+            raise ValueError(f"init: {name}={value} must be > {lo} to start a fit (it is optimised as log({name} − {lo})).")
+    max_steps = int(max_steps)
+    if max_steps < 1:
+        raise ValueError(f"max_steps={max_steps}; must be ≥ 1.")
+
+    dtype = jnp.result_type(float)
+    cov_obs = np.asarray(observed.covariance, np.float64)
+    whiten = np.linalg.inv(np.linalg.cholesky(cov_obs))
+    problem = _Problem(
+        system=system, model=model, observed=jnp.asarray(observed.statistics(), dtype), whiten=jnp.asarray(whiten, dtype),
+        ts=tuple(float(t) for t in observed.ts), names=observed.names, vary=vary, lower=lower,
+    )
+    optimizer = _lbfgs() if optimizer is None else optax.with_extra_args_support(optimizer)
+    phi = jnp.asarray([t if lo is None else np.log(t - lo) for t, lo in zip(theta0, lower)], dtype)
+    # Strong dtypes: the state after a step has no weak types, and the step compiles once.
+    state = jax.tree.map(lambda x: jnp.asarray(x, jnp.result_type(x)), optimizer.init(phi))
+    reuse = optax.tree_utils.tree_get(state, "value") is not None
+    history, converged, steps = [], False, 0
+    for steps in range(1, max_steps + 1):
+        new_phi, state, value, grad = _step(phi, state, problem, optimizer, reuse)
+        history.append([float(value), *np.asarray(problem.theta(phi))])
+        if not np.isfinite(float(value)):
+            raise FloatingPointError(f"estimate: the loss is {float(value)} at {dict(zip(vary, history[-1][1:]))}.")
+        if float(jnp.linalg.norm(grad)) <= gtol:
+            converged = True
+            break
+        phi = new_phi
+    theta = problem.theta(phi)
+
+    g = np.asarray(_statistics_jacobian(theta, problem), np.float64)
+    cov_model = np.asarray(model.noise_covariance(problem.system_at(theta), problem.ts, observed.names), np.float64)
+    w_g = np.linalg.solve(cov_obs, g)  # Σ_obs⁻¹ G
+    fisher = g.T @ w_g
+    if not np.all(np.isfinite(fisher)) or np.linalg.cond(fisher) > 1e12:
+        raise ValueError(
+            f"estimate: the observed statistics do not determine {vary} separately (the Fisher information "
+            f"{fisher.tolist()} is singular); observe more times or components, or vary fewer parameters."
+        )
+    h_inv = np.linalg.inv(fisher)
+    cov = h_inv + h_inv @ w_g.T @ cov_model @ w_g @ h_inv
+    r = np.asarray(problem.statistics(theta), np.float64) - observed.statistics()
+    chi2 = float(r @ np.linalg.solve(cov_obs + cov_model, r))
+    return FitResult(
+        names=vary, values=np.asarray(theta, np.float64), cov=0.5 * (cov + cov.T), init=theta0, chi2=chi2,
+        dof=observed.size - len(vary), steps=steps, converged=converged, history=np.asarray(history),
+    )

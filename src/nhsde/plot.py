@@ -1,0 +1,133 @@
+"""Matplotlib helpers: drift curves with error bands, densities against theory, Poincaré sections.
+
+matplotlib is imported only when a function here is called, so the rest of
+nhsde does not need it (``pip install nhsde[plot]``).  Every function draws on
+``ax`` (a new figure's axes if ``None``) and returns the axes it drew on.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+__all__ = ["band", "confidence_ellipse", "density", "drift_curves", "poincare_section"]
+
+
+def _axes(ax, n=1, **subplots):
+    if ax is not None:
+        return ax
+    import matplotlib.pyplot as plt
+
+    _, axes = plt.subplots(1, n, figsize=(4.5 * n, 3.6), squeeze=False, **subplots)
+    return axes[0] if n > 1 else axes[0, 0]
+
+
+def band(ax, ts, value, se, *, n_se: float = 2.0, label: str | None = None, color=None, theory=None, theory_ts=None,
+         theory_label: str = "theory"):
+    """``value ± n_se·se`` against ``ts`` as markers on a shaded band; ``theory`` (at ``theory_ts``, default ``ts``) as a line."""
+    ax = _axes(ax)
+    ts, value, se = (np.asarray(a, np.float64) for a in (ts, value, se))
+    if not ts.shape == value.shape == se.shape:
+        raise ValueError(f"band: ts {ts.shape}, value {value.shape} and se {se.shape} must have one shape.")
+    (line,) = ax.plot(ts, value, "o", ms=3.5, color=color, label=label)
+    ax.fill_between(ts, value - n_se * se, value + n_se * se, color=line.get_color(), alpha=0.25, lw=0,
+                    label=f"±{n_se:g} SE")
+    if theory is not None:
+        tt = ts if theory_ts is None else np.asarray(theory_ts, np.float64)
+        ax.plot(tt, np.asarray(theory, np.float64), "-", color="k", lw=1.2, label=theory_label)
+    return ax
+
+
+def drift_curves(stats, *, theory: Callable | None = None, axes=None, n_se: float = 2.0):
+    """Systematic drift ``m_{q''}(t)`` and fluctuation drift ``K_{q''}(t)`` (diagonal) with error bands, S0 (6.7).
+
+    ``stats``: a :class:`nhsde.statistics.DriftStatistics`.  ``theory(ts) ->
+    (mean (T, k), cov (T, k, k))`` is drawn as lines at 200 times.  ``axes``: two
+    axes (systematic, fluctuation); returns them.
+    """
+    axes = _axes(axes, 2)
+    ts = np.asarray(stats.ts, np.float64)
+    tt = np.linspace(ts[0], ts[-1], 200)
+    th_mean = th_cov = None
+    if theory is not None:
+        th_mean, th_cov = (np.asarray(a, np.float64) for a in theory(tt))
+    for i, name in enumerate(stats.names):
+        color = f"C{i}"
+        band(axes[0], ts, stats.systematic[:, i], stats.systematic_se[:, i], n_se=n_se, label=f"m[{name}]", color=color)
+        band(axes[1], ts, stats.fluctuation[:, i, i], stats.fluctuation_se[:, i, i], n_se=n_se,
+             label=f"K[{name},{name}]", color=color)
+        if theory is not None:
+            axes[0].plot(tt, th_mean[:, i], "-", color=color, lw=1)
+            axes[1].plot(tt, th_cov[:, i, i], "-", color=color, lw=1)
+    axes[0].set_title("systematic drift")
+    axes[1].set_title("fluctuation drift")
+    for ax in axes:
+        ax.set_xlabel("t")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    return axes
+
+
+def density(ax, samples, pdf: Callable, *, bins: int = 40, range: tuple[float, float] | None = None,
+            n_se: float = 2.0, label: str = "samples", theory_label: str = "theory"):
+    """Histogram of ``samples`` against the density ``pdf`` with the band a histogram of that many samples fills.
+
+    A bin with probability ``p`` holds ``n p ± √(n p (1 − p))`` samples, so the
+    shaded band is ``n_se`` such errors about the theory; bin probabilities are
+    ``pdf`` integrated over each bin (Simpson, 16 panels).
+    """
+    ax = _axes(ax)
+    x = np.asarray(samples, np.float64).ravel()
+    x = x[np.isfinite(x)]
+    if x.size < 2:
+        raise ValueError(f"density: {x.size} finite samples; need at least 2.")
+    edges = np.histogram_bin_edges(x, bins=bins, range=range)
+    counts, _ = np.histogram(x, bins=edges)
+    width = np.diff(edges)
+    sub = edges[:-1, None] + width[:, None] * np.linspace(0, 1, 17)
+    f = np.asarray(pdf(sub.ravel()), np.float64).reshape(sub.shape)
+    p = width / 48 * (f[:, 0] + 4 * f[:, 1:-1:2].sum(1) + 2 * f[:, 2:-1:2].sum(1) + f[:, -1])
+    n = x.size
+    spread = n_se * np.sqrt(n * p * np.clip(1 - p, 0, 1)) / (n * width)
+    steps = np.repeat(edges, 2)[1:-1]  # the band follows the bins
+    ax.fill_between(steps, np.repeat(np.maximum(p / width - spread, 0.0), 2), np.repeat(p / width + spread, 2),
+                    color="0.8", lw=0, label=f"±{n_se:g} SE of a histogram")
+    ax.stairs(counts / (n * width), edges, color="C1", lw=1.5, label=label)
+    xs = np.linspace(edges[0], edges[-1], 400)
+    ax.plot(xs, np.asarray(pdf(xs), np.float64), "k-", lw=1.2, label=theory_label)
+    ax.legend(fontsize=8)
+    return ax
+
+
+def poincare_section(ax, points, *, labels=("q", "p"), s: float = 1.0, colors=None):
+    """Points of a Poincaré section: ``points`` is a list of ``(n_i, 2)`` arrays, one per orbit (NaN rows skipped)."""
+    ax = _axes(ax)
+    if isinstance(points, np.ndarray) and points.ndim == 2:
+        points = [points]
+    for i, orbit in enumerate(points):
+        orbit = np.asarray(orbit, np.float64)
+        if orbit.ndim != 2 or orbit.shape[1] != 2:
+            raise ValueError(f"poincare_section: orbit {i} has shape {orbit.shape}; expected (n, 2).")
+        orbit = orbit[np.all(np.isfinite(orbit), axis=1)]
+        color = None if colors is None else colors[i % len(colors)]
+        ax.scatter(orbit[:, 0], orbit[:, 1], s=s, color=color, lw=0)
+    ax.set_xlabel(labels[0])
+    ax.set_ylabel(labels[1])
+    return ax
+
+
+def confidence_ellipse(ax, mean, cov, *, n_sigma: float = 2.0, **kwargs):
+    """The ellipse ``(θ − mean)ᵀ cov⁻¹ (θ − mean) = n_sigma²`` of a two-parameter estimate."""
+    from matplotlib.patches import Ellipse
+
+    ax = _axes(ax)
+    mean, cov = np.asarray(mean, np.float64), np.asarray(cov, np.float64)
+    if mean.shape != (2,) or cov.shape != (2, 2):
+        raise ValueError(f"confidence_ellipse: mean {mean.shape} and cov {cov.shape} must be (2,) and (2, 2).")
+    w, v = np.linalg.eigh(cov)
+    angle = np.degrees(np.arctan2(v[1, 1], v[0, 1]))
+    kwargs.setdefault("fill", False)
+    ax.add_patch(Ellipse(mean, 2 * n_sigma * np.sqrt(w[1]), 2 * n_sigma * np.sqrt(w[0]), angle=angle, **kwargs))
+    ax.autoscale_view()
+    return ax
