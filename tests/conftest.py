@@ -5,3 +5,18 @@ import jax
 # silent float32/float64 mixing.
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
+
+
+import gc  # noqa: E402
+
+import equinox as eqx  # noqa: E402
+import pytest  # noqa: E402
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    """Drop compiled programs after each test module so one long session does not accumulate them."""
+    yield
+    jax.clear_caches()
+    eqx.clear_caches()
+    gc.collect()

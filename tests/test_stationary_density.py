@@ -111,6 +111,20 @@ def test_statement_2_invariant_measure():
         stationary_density(conformal(eps=eps, nu=nu), oscillator_hamiltonian)
 
 
+def test_above_three_dimensions_the_density_is_known_up_to_its_constant():
+    names = ("u1", "u2", "u3", "u4")
+    system = system_of(lambda t, y, p: -2 * p.eps * y, names, ("velocity",) * 4,
+                       diffusion=lambda t, y, p: jnp.sqrt(p.nu) * jnp.eye(4, dtype=y.dtype))
+    density = stationary_density(system, lambda x, p: 0.5 * x @ x)
+    np.testing.assert_allclose(density.alpha, 4 * 0.5 / 1.0, rtol=1e-12)
+    assert density.log_normaliser is None
+    np.testing.assert_allclose(density.log_unnormalised(jnp.ones((3, 4))), -4.0, rtol=1e-12)
+    with pytest.raises(ValueError, match=r"known only up to 3 dimensions \(here 4\); use log_unnormalised"):
+        density.log_pdf(jnp.ones(4))
+    with pytest.raises(ValueError, match=r"moments by quadrature need ≤ 3 dimensions"):
+        density.moments()
+
+
 def test_noisy_chaplygin_sleigh_is_refused():
     """The sleigh's frictionless flow compresses phase volume (div = −(ma/J) v): no invariant measure."""
     def energy(x, p):
