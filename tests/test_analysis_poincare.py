@@ -58,11 +58,13 @@ def test_fig7_reversibility_swaps_the_map_and_its_inverse(unbalanced_ball_in_gra
     """Φ⁻¹ ∘ R = R ∘ Φ: the inverse map from R(x) retraces R of the forward orbit from x.
 
     (From points in the regular regions: in the chaotic layers rounding errors
-    grow to O(1) within 20 iterations.)
+    grow to O(1) within 20 iterations.)  The attractor and repeller themselves:
+    ``test_fig7_attractor_and_repeller_are_mirror_images`` (slow) and the notebook
+    ``rubber_rolling_hierarchy.py``.
     """
     scene = unbalanced_ball_in_gravity
     points = jnp.array([[0.45, 0.85], [3.5, 0.58]])
-    kw = {"h": 50.0, "g0": np.pi, "n_crossings": 20, "dt": 0.02}
+    kw = {"h": 50.0, "g0": np.pi, "n_crossings": 30, "dt": 0.02}
     forward = A.poincare_section(scene.vector_field, B.rolling_energy, scene.params, points, **kw)
     mirrored = jnp.stack(reflect(points[:, 0], points[:, 1]), axis=1)
     backward = A.poincare_section(scene.vector_field, B.rolling_energy, scene.params, mirrored, backward=True, **kw)
@@ -71,6 +73,7 @@ def test_fig7_reversibility_swaps_the_map_and_its_inverse(unbalanced_ball_in_gra
     assert float(jnp.max(dl)) < 1e-7 and float(jnp.max(jnp.abs(backward.ratio - ratio))) < 1e-7
 
 
+@pytest.mark.slow
 def test_fig7_attractor_and_repeller_are_mirror_images(unbalanced_ball_in_gravity):
     """An attractor of Φ near (l, L/G) ≈ (0.45, 0.87) and, found independently with Φ⁻¹, a repeller at its mirror image.
 
@@ -97,5 +100,7 @@ def test_fig7_attractor_and_repeller_are_mirror_images(unbalanced_ball_in_gravit
     on_repeller = A.solve_flow(scene.vector_field, backward.states[:, -1], p, t1=-t1, log_volume=True, n_save=2)
     rate_attractor = on_attractor.log_volume[:, -1] / t1
     rate_repeller = -on_repeller.log_volume[:, -1] / t1  # forward-time rate along the repeller
+    print(f"mean divergence: attractor {np.round(np.asarray(rate_attractor), 4)}, repeller "
+          f"{np.round(np.asarray(rate_repeller), 4)}; max mirrored distance {float(jnp.max(dist)):.3f}")
     assert bool(jnp.all(rate_attractor < -0.005)), rate_attractor
     np.testing.assert_allclose(rate_repeller, -jnp.mean(rate_attractor), rtol=0.25)

@@ -5,9 +5,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import nhsde.analysis as A
 import nhsde.bodies as B
 from nhsde.bodies._surfaces import fibonacci_directions
-from nhsde.scenes import RollingBody
+from nhsde.scenes import BodyOnVibratingPlane, RollingBody, stationary_nutation_density
 
 DIRECTIONS = jnp.asarray(fibonacci_directions(64))
 
@@ -143,6 +144,9 @@ def test_catalogue_formulas_refuse_the_wrong_body():
         B.spherical_inertia_measure(y, asymmetric.params)
     with pytest.raises(ValueError, match="z = 0 or I₁ = I₂"):
         B.flat_base_measure(jnp.zeros(4), B.FlatBaseParameters(inertia=(1.0, 2.0, 3.0), z=-0.5))
+    vibrating = BodyOnVibratingPlane(body=asymmetric.params.body)
+    with pytest.raises(ValueError, match="dynamically symmetric body of revolution"):
+        stationary_nutation_density(vibrating.params, 0.3)
 
 
 def test_rolling_field_is_differentiable_in_the_physical_parameters():
@@ -159,4 +163,20 @@ def test_rolling_field_is_differentiable_in_the_physical_parameters():
         return jnp.sum(scene.vector_field(0.0, y, p)[:3] ** 2)
 
     h = 1e-6
-    np.testing.assert_allclose(jax.grad(out)(0.9), (out(0.9 + h) - out(0.9 - h)) / (2 * h), rtol=1e-6)
+    value_and_grad = jax.jit(jax.value_and_grad(out))
+    fd = (value_and_grad(0.9 + h)[0] - value_and_grad(0.9 - h)[0]) / (2 * h)
+    np.testing.assert_allclose(value_and_grad(0.9)[1], fd, rtol=1e-6)
+
+
+def test_contact_point_drift_of_a_rolling_ball():
+    """drift=True keeps α and the contact point: a homogeneous ball rolling about a horizontal axis moves its
+    contact point along a straight line at speed R|ω| (classic rolling, S2 (1.4))."""
+    radius, w = 0.7, 1.3
+    scene = RollingBody(body=B.RigidBody(mass=1.0, inertia=(0.196, 0.196, 0.196), surface=B.Sphere(radius=radius)),
+                        contact="classic", gravity=9.8, drift=True)
+    assert scene.layout.names[6:] == ("alpha_1", "alpha_2", "alpha_3", "x", "y")
+    assert scene.layout.indices("dependent_coordinate") == (9, 10)
+    y0 = scene.initial_state([0.0, w, 0.0], [0.0, 0.0, 1.0], alpha=[1.0, 0.0, 0.0])
+    flow = A.solve_flow(scene.vector_field, y0[None], scene.params, t1=10.0, n_save=3)
+    np.testing.assert_allclose(flow.ys[0, :, 9], radius * w * flow.ts, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(flow.ys[0, :, 10], 0.0, atol=1e-12)

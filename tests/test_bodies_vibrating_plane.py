@@ -1,6 +1,7 @@
 """Heavy body of revolution on a vibrating rough plane (S0 §5): S0 Statement 2 against the Fokker–Planck
 equation and against long ensembles; friction models Φ₁ and Φ₂; Jellett's integral; singular positions."""
 
+import dataclasses
 from functools import partial
 
 import jax
@@ -30,12 +31,6 @@ def scene(body=None, **kw):
     return BodyOnVibratingPlane(body=body, eps=1.0, nu=2.0, gravity=1.0, **kw)
 
 
-def energy(y, p):
-    n = y[3:6] / jnp.linalg.norm(y[3:6])
-    r = p.body.surface.contact_point(n)
-    return 0.5 * y[:3] @ B.contact_inertia(p.body.inertia, p.body.mass, r) @ y[:3] - p.body.mass * p.gravity * (n @ r)
-
-
 def fokker_planck_residual(system, log_density, y):
     """``[−div(a f) + ½ Σᵢⱼ ∂ᵢ∂ⱼ(Dᵢⱼ f)] / f`` and the size of its terms, S0 (2.2).
 
@@ -56,11 +51,10 @@ def fokker_planck_residual(system, log_density, y):
 
 def test_noise_acts_on_omega_through_gamma_only():
     system = scene().build()
-    p = system.params
     states = random_states(8, key=13)
-    jac = jax.vmap(jax.jacfwd(lambda y: system.diffusion(0.0, y, p)))(states)
+    jac, b = jax.jit(jax.vmap(lambda y, p: (jax.jacfwd(system.diffusion, argnums=1)(0.0, y, p),
+                                             system.diffusion(0.0, y, p)), in_axes=(0, None)))(states, system.params)
     assert float(jnp.max(jnp.abs(jac[..., :3]))) == 0.0  # b does not depend on ω
-    b = jax.vmap(lambda y: system.diffusion(0.0, y, p))(states)
     assert float(jnp.max(jnp.abs(b[:, 3:]))) == 0.0  # no noise on γ
 
 
@@ -73,7 +67,7 @@ def random_states(n, key=0):
 @partial(jax.jit, static_argnums=0, compiler_options=FAST_COMPILE)
 def fpk_relative_residuals(measure, system, alpha, states):
     def log_f(y):
-        return jnp.log(measure(y, system.params)) - alpha * energy(y, system.params)
+        return jnp.log(measure(y, system.params)) - alpha * B.rolling_energy(y, system.params)
 
     total, size = jax.vmap(lambda y: fokker_planck_residual(system, log_f, y))(states)
     return jnp.abs(total) / size
@@ -91,8 +85,7 @@ def s0_measure_with_mean_a(y, q):
 def test_statement2_density_solves_the_stationary_fokker_planck_equation():
     """f = N(θ) det Ĩ e^{−αH} with α = 4ε/(mν) makes the stationary FPK residual vanish (1e-10 of its terms).
 
-    With α off by 10 %, or for a dynamically asymmetric body (no invariant measure;
-    S0's formula with A = (I₁ + I₂)/2), the residual is far from zero.
+    With α off by 10 % the residual is far from zero.
     """
     system = scene().build()
     p = system.params
@@ -102,11 +95,7 @@ def test_statement2_density_solves_the_stationary_fokker_planck_equation():
     assert float(jnp.max(exact)) < 1e-10
     wrong_alpha = fpk_relative_residuals(revolution_measure_s0, system, 1.1 * p.alpha, states)
     assert float(jnp.median(wrong_alpha)) > 1e-2
-    asym = scene(ASYMMETRIC).build()
-    off = fpk_relative_residuals(s0_measure_with_mean_a, asym, asym.params.alpha, states)
-    assert float(jnp.median(off)) > 1e-3, off
-    print(f"relative FPK residual: exact {float(jnp.max(exact)):.2g}, α×1.1 median {float(jnp.median(wrong_alpha)):.2g}, "
-          f"asymmetric body median {float(jnp.median(off)):.2g}")
+    print(f"relative FPK residual: exact {float(jnp.max(exact)):.2g}, α×1.1 median {float(jnp.median(wrong_alpha)):.2g}")
 
 
 def per_path_fractions(theta):
@@ -144,11 +133,11 @@ def run_theta(sc, y0, key, t1=20.0, dt=0.01):
 
 
 def test_nutation_marginal_matches_statement2():
-    """The nutation angle of a long ensemble (2048 paths, Heun dt = 0.01, θ at t = 10, 12, …, 20 after a start
+    """The nutation angle of a long ensemble (1024 paths, Heun dt = 0.01, θ at t = 10, 12, …, 20 after a start
     in the stationary law) has the marginal c N(θ) ∫ e^{−αH} dp of S0 Statement 2 within Monte-Carlo error:
     Hotelling T² (per-path fractions, 11 dof) below its 0.999 quantile and every bin within 4 SE."""
     sc = scene()
-    y0 = sample_stationary(sc.params, jax.random.key(1), 2048)
+    y0 = sample_stationary(sc.params, jax.random.key(1), 1024)
     theta = run_theta(sc, y0, key=2)
     t2, z = hotelling(per_path_fractions(theta[:, 5:]), bin_probabilities(sc.params))
     assert t2 < CRITICAL and np.max(np.abs(z)) < 4, (t2, z)
@@ -171,24 +160,29 @@ def test_nutation_marginal_of_a_body_without_invariant_measure():
     marginal stays within Monte-Carlo error of that law (8192 paths, t = 10…30).  The missing measure enters
     the drift odd in ω, so the θ-marginal moves only at second order: not detectable at this size."""
     sc = scene(ASYMMETRIC)
+    system = sc.build()
+    off = fpk_relative_residuals(s0_measure_with_mean_a, system, system.params.alpha, random_states(32))
+    assert float(jnp.median(off)) > 1e-3  # S0's law is not stationary for this body (exact: 2.6e-16)
     y0 = sample_stationary(sc.params, jax.random.key(3), 8192, measure=s0_measure_with_mean_a)
     theta = run_theta(sc, y0, key=4, t1=30.0)
     start = per_path_fractions(theta[:, :1])
     t2, z = hotelling(per_path_fractions(theta[:, 5:]) - start + start.mean(0), start.mean(0))
-    print(f"asymmetric body: T² = {t2:.1f} (0.999 quantile {CRITICAL:.1f}), z = {np.round(z, 1)}")
+    print(f"asymmetric body: relative FPK residual of S0's law (median) {float(jnp.median(off)):.2g}; "
+          f"T² = {t2:.1f} (0.999 quantile {CRITICAL:.1f}), z = {np.round(z, 1)}")
     assert np.max(np.abs(z)) < 4
+
+
+LONG_RUN = {"n_paths": 256, "t1": 40.0, "dt": 0.01, "solver": "heun", "save": nhsde.Save(n=2, paths=True)}
 
 
 def test_phi2_carries_the_plane_velocity_and_moves_the_body_as_phi1():
     """Φ₂: friction on the absolute velocity and the shaping filter π̇ + 2επ = V give the body the same
     equations as Φ₁ (S0 (5.5)); same noise ⇒ same body paths.  π (from rest) has Var πᵢ = ν(1 − e^{−4εt})/(4ε)."""
-    kw = {"n_paths": 1024, "t1": 4.0, "dt": 0.01, "solver": "heun"}
     one, two = scene(friction="phi1"), scene(friction="phi2")
     assert two.build().layout.names[-3:] == ("pi_1", "pi_2", "pi_3")
-    a = nhsde.simulate(one.build(), one.initial_state(), jax.random.key(5), save=nhsde.Save(n=5, paths=True), **kw)
-    b = nhsde.simulate(two.build(), two.initial_state(), jax.random.key(5), save=nhsde.Save(n=5, paths=True), **kw)
+    a, b = (nhsde.simulate(sc.build(), sc.initial_state(), jax.random.key(5), **LONG_RUN) for sc in (one, two))
     np.testing.assert_allclose(b.paths[..., :6], a.paths[..., :6], rtol=1e-10, atol=1e-10)
-    eps, nu, t = 1.0, 2.0, 4.0
+    eps, nu, t = 1.0, 2.0, 40.0
     var = nu * (1 - np.exp(-4 * eps * t)) / (4 * eps)
     cov, se = b.cov[-1, 6:, 6:], b.cov_se[-1, 6:, 6:]
     assert bool(jnp.all(jnp.abs(jnp.diagonal(cov) - var) < 4 * jnp.diagonal(se))), (jnp.diagonal(cov), var)
@@ -218,7 +212,7 @@ def test_jellett_integral_survives_vibration_for_routh_sphere_only():
 def test_unit_vector_drift_is_harmless_and_reported():
     """The equations use n = γ/|γ| only (γ̇ = |γ| ṅ): scaling γ scales γ̇ and changes nothing else, so the
     norm drift of Euler–Heun (first order in the drift) does not reach the physics.  Measured here:
-    ‖γ| − 1| after t = 40 at dt = 0.01 (64 paths)."""
+    ‖γ| − 1| after t = 40 at dt = 0.01 (256 paths from upright at rest)."""
     system = scene().build()
     p = system.params
     states = random_states(16, key=7)
@@ -228,9 +222,8 @@ def test_unit_vector_drift_is_harmless_and_reported():
     np.testing.assert_allclose(fs[:, 3:], 2.5 * f[:, 3:], rtol=1e-12, atol=1e-12)
     b, bs = (jax.vmap(lambda y: system.diffusion(0.0, y, p))(x) for x in (states, scaled))
     np.testing.assert_allclose(bs, b, rtol=1e-12, atol=1e-12)
-    sc = scene()
-    ens = nhsde.simulate(sc.build(), sc.initial_state(), jax.random.key(8), n_paths=64, t1=40.0, dt=0.01,
-                         solver="heun", save=nhsde.Save(n=2, paths=True))
+    sc = scene()  # upright at rest: θ = 0, where Euler angles are singular
+    ens = nhsde.simulate(sc.build(), sc.initial_state(), jax.random.key(8), **LONG_RUN)
     norm = np.linalg.norm(np.asarray(ens.paths[:, -1, 3:6]), axis=1)
     assert int(ens.n_failed) == 0 and np.all(np.isfinite(norm))
     print(f"max ||γ| − 1| after t = 40: {np.max(np.abs(norm - 1)):.3g}")
@@ -238,7 +231,8 @@ def test_unit_vector_drift_is_harmless_and_reported():
 
 def test_near_singular_positions_integrate_without_nan():
     """Upright (θ = 0, where Euler angles are singular) and a thin disk rolling on its edge, over t = 100
-    (γ² and energy to 1e-8, adaptive Dopri8 at rtol 1e-11); the spheroid on the vibrating plane from upright."""
+    (γ² and energy to 1e-8, adaptive Dopri8 at rtol 1e-11).  (The vibrating plane from upright:
+    ``test_unit_vector_drift_is_harmless_and_reported``.)"""
     profile = B.BodyOfRevolution(lambda u, s: jnp.sqrt(s[0] ** 2 * u**2 + s[1] ** 2 * (1 - u**2)) - s[2] * u,
                                  shape=(0.8, 1.0, 0.2))
     upright = RollingBody(body=B.RigidBody(mass=1.0, inertia=(0.3, 0.3, 0.5), surface=profile), contact="classic",
@@ -258,17 +252,48 @@ def test_near_singular_positions_integrate_without_nan():
         assert float(jnp.max(drift["g2"])) < 1e-8 and float(jnp.max(drift["E"])) < 1e-8
         print(f"{type(sc.params.body.surface).__name__}: γ² drift {float(jnp.max(drift['g2'])):.2g}, "
               f"energy drift {float(jnp.max(drift['E'])):.2g} over t = 100")
-    ens = nhsde.simulate(scene().build(), scene().initial_state(), jax.random.key(10), n_paths=64, t1=5.0, dt=0.01,
-                         solver="heun")
-    assert int(ens.n_failed) == 0
 
 
 @pytest.mark.slow
-def test_nutation_marginal_from_rest_after_a_long_burn_in():
-    """From rest the ensemble reaches S0's law; J = (Ĩω, r) relaxes slowly (time scale ≈ 40), so the θ
-    samples are taken over t = 200…300 (4096 paths, dt = 0.005)."""
+def test_euler_heun_bias_of_the_slow_jellett_mode_is_first_order_in_dt():
+    """Why the ensembles start in the stationary law and stay short: J = (Ĩω, r) is changed by neither noise
+    nor friction, only by the slow rolling dynamics, so the first-order drift error of Euler–Heun (the
+    ``heun`` solver of ``simulate``) accumulates in it.  From the stationary law, E[J²] grows over t = 18 by an
+    amount proportional to dt (ratio 2 between dt = 0.02 and 0.01, within 4 SE; the dt = 0.02 growth is
+    > 8 SE).  Over long runs from rest the scheme's own stationary law is then visibly off S0's at
+    4096 paths (measured: T² ≈ 44 for 11 dof at dt = 0.005, t = 200…300)."""
     sc = scene()
-    y0 = jnp.broadcast_to(sc.initial_state(), (4096, 6))
-    theta = run_theta(sc, y0, key=11, t1=300.0, dt=0.005)
-    t2, z = hotelling(per_path_fractions(theta[:, 100::5]), bin_probabilities(sc.params))
-    assert t2 < CRITICAL and np.max(np.abs(z)) < 4, (t2, z)
+    system = sc.build()
+    y0 = sample_stationary(sc.params, jax.random.key(14), 4096)
+
+    def jellett(t, y, p):
+        n = y[3:6] / jnp.linalg.norm(y[3:6])
+        r = p.body.surface.contact_point(n)
+        return (B.contact_inertia(p.body.inertia, p.body.mass, r) @ y[:3]) @ r
+
+    system = dataclasses.replace(system, observables=(("J", jellett),))
+    growth = {}
+    for dt in (0.02, 0.01):
+        ens = nhsde.simulate(system, y0, jax.random.key(15), n_paths=4096, t1=18.0, dt=dt, solver="heun",
+                             save=nhsde.Save(names=("J",), n=2, paths=True))
+        j = np.asarray(ens.paths[..., 0])
+        d = j[:, -1] ** 2 - j[:, 0] ** 2
+        growth[dt] = (d.mean(), d.std(ddof=1) / np.sqrt(d.size))
+    (g2, s2), (g1, s1) = growth[0.02], growth[0.01]
+    print(f"E[J²] growth over t = 18: dt = 0.02: {g2:.4f} ± {s2:.4f}; dt = 0.01: {g1:.4f} ± {s1:.4f}")
+    assert g2 > 8 * s2
+    assert abs(g2 - 2 * g1) < 4 * np.hypot(s2, 2 * s1)
+
+
+def test_state_holds_position_and_filter_only_when_asked():
+    """drift=True adds α and the contact point, Φ₂ adds π; the spheroid rolling over its pole (radius of
+    curvature a²/c) moves its contact point at a²/c · ω (S2 (1.4): ẋ = (α, ṙ))."""
+    assert scene().build().layout.names == ("omega_1", "omega_2", "omega_3", "gamma_1", "gamma_2", "gamma_3")
+    system = scene(drift=True, friction="phi2").build()
+    assert system.layout.names[6:] == ("alpha_1", "alpha_2", "alpha_3", "x", "y", "pi_1", "pi_2", "pi_3")
+    assert system.layout.indices("dependent_coordinate") == (9, 10)
+    assert system.layout.indices("random_parameter") == (11, 12, 13)
+    w = 0.8
+    y = scene(drift=True, friction="phi2").initial_state().at[1].set(w)
+    rates = system.drift(0.0, y, system.params)
+    np.testing.assert_allclose(rates[9:11], [w / 0.6, 0.0], rtol=1e-12, atol=1e-12)

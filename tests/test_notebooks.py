@@ -32,6 +32,8 @@ EXPECTED_PNGS = {
     },
     "work_precision.py": {"work_precision.png"},
     "controlled_systems.py": {"rod_energy_work.png", "gauss_compulsion.png", "beghin_servo_vs_contact.png"},
+    "rubber_rolling_hierarchy.py": {"poincare_integrable.png", "poincare_unbalanced_gravity.png"},
+    "body_of_revolution_vibrating_plane.py": {"nutation_density_spheroid.png", "nutation_density_routh_sphere.png"},
 }
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"

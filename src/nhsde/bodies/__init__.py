@@ -32,6 +32,7 @@ from ._rolling import angular_acceleration as angular_acceleration
 from ._rolling import contact_inertia as contact_inertia
 from ._rolling import contact_kinematics as contact_kinematics
 from ._rolling import flat_base_energy as flat_base_energy
+from ._rolling import position_rates as position_rates
 from ._rolling import rolling_energy as rolling_energy
 from ._surfaces import AbstractSurface as AbstractSurface
 from ._surfaces import BodyOfRevolution as BodyOfRevolution

@@ -49,6 +49,7 @@ __all__ = [
     "contact_inertia",
     "contact_kinematics",
     "flat_base_energy",
+    "position_rates",
     "rolling_energy",
 ]
 
@@ -92,6 +93,13 @@ def angular_acceleration(inertia, mass, gyrostat, omega, n, n_dot, r, r_dot, tor
     it_n = solve3(it, n)
     lam = -(jnp.dot(n, acc) + jnp.dot(omega, n_dot)) / jnp.dot(n, it_n)
     return acc + lam * it_n
+
+
+def position_rates(alpha, omega, n, r_dot):
+    """``(α̇, ẋ, ẏ)``: the fixed horizontal axis ``OX`` in the body axes and the contact point on the plane,
+    ``α̇ = α × ω``, ``ẋ = (α, ṙ)``, ``ẏ = (γ × α, ṙ)`` (S2 (1.4); ``α`` normalised like ``γ``)."""
+    a = alpha / jnp.linalg.norm(alpha)
+    return jnp.concatenate([jnp.cross(alpha, omega), jnp.stack([jnp.dot(a, r_dot), jnp.dot(jnp.cross(n, a), r_dot)])])
 
 
 class RollingParameters(AbstractParameters):
@@ -149,14 +157,12 @@ class RollingField(eqx.Module):
         )
         parts = [omega_dot, jnp.linalg.norm(gamma) * n_dot]
         if self.position:
-            alpha = y[6:9]
-            a = alpha / jnp.linalg.norm(alpha)
-            parts += [jnp.cross(alpha, omega), jnp.stack([jnp.dot(a, r_dot), jnp.dot(jnp.cross(n, a), r_dot)])]
+            parts.append(position_rates(y[6:9], omega, n, r_dot))
         return jnp.concatenate(parts)
 
 
-def rolling_energy(y, p: RollingParameters):
-    """``E = ½(ω, Ĩω) + U(γ)``, ``U = −m g (γ, r(γ))``: S2 (1.10), (1.15)."""
+def rolling_energy(y, p):
+    """``E = ½(ω, Ĩω) + U(γ)``, ``U = −m g (γ, r(γ))``: S2 (1.10), (1.15).  ``p`` has ``body`` and ``gravity``."""
     body = p.body
     omega, n = y[:3], y[3:6] / jnp.linalg.norm(y[3:6])
     r = body.surface.contact_point(n)

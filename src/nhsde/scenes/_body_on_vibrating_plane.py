@@ -42,6 +42,7 @@ an integral, but it relaxes slowly (time scale ~40 for the default body).
 
 from __future__ import annotations
 
+from functools import partial
 from typing import ClassVar, Literal
 
 import equinox as eqx
@@ -51,12 +52,15 @@ import numpy as np
 
 from .._params import AbstractParameters, parameter
 from .._system import StateLayout, StochasticSystem
+from ..analysis._liouville import FAST_COMPILE
 from ..bodies import (
     Ellipsoid,
     RigidBody,
     angular_acceleration,
     contact_inertia,
     contact_kinematics,
+    position_rates,
+    rolling_energy,
 )
 from ..bodies._rolling import solve3
 from ..bodies._surfaces import _concrete, fibonacci_directions
@@ -127,9 +131,7 @@ class _Drift(eqx.Module):
         )
         parts = [omega_dot, jnp.linalg.norm(gamma) * n_dot]
         if alpha_at is not None:
-            alpha = y[alpha_at : alpha_at + 3]
-            a = alpha / jnp.linalg.norm(alpha)
-            parts += [jnp.cross(alpha, omega), jnp.stack([jnp.dot(a, r_dot), jnp.dot(jnp.cross(n, a), r_dot)])]
+            parts.append(position_rates(y[alpha_at : alpha_at + 3], omega, n, r_dot))
         if pi_at is not None:
             parts.append(pi_dot)
         return jnp.concatenate(parts)
@@ -157,11 +159,7 @@ def _theta(t, y, p):
 
 
 def _energy(t, y, p):
-    body = p.body
-    n = y[3:6] / jnp.linalg.norm(y[3:6])
-    r = body.surface.contact_point(n)
-    omega = y[:3]
-    return 0.5 * omega @ contact_inertia(body.inertia, body.mass, r) @ omega - body.mass * p.gravity * jnp.dot(n, r)
+    return rolling_energy(y, p)
 
 
 class BodyOnVibratingPlane(eqx.Module):
@@ -266,6 +264,12 @@ def stationary_nutation_density(p: VibratingPlaneParameters, theta):
     (the Gaussian ``p``-integral of ``H = ½pᵀG⁻¹p + U``, ``det G = sin²θ det Ĩ``),
     normalised on ``[0, π]`` (Gauss–Legendre, 256 nodes).
     """
+    _symmetric(p.body)
+    return _nutation_density(p, jnp.atleast_1d(jnp.asarray(theta, jnp.result_type(float))))
+
+
+@partial(jax.jit, compiler_options=FAST_COMPILE)
+def _nutation_density(p: VibratingPlaneParameters, theta):
     body = p.body
 
     def log_weight(th):
@@ -276,11 +280,10 @@ def stationary_nutation_density(p: VibratingPlaneParameters, theta):
         return jnp.log(jnp.sin(th)) + 0.5 * jnp.log(det) - p.alpha * u - jnp.log(_delta(body, th))
 
     x, w = np.polynomial.legendre.leggauss(256)
-    nodes = jnp.asarray(0.5 * np.pi * (x + 1))
+    nodes = jnp.asarray(0.5 * np.pi * (x + 1), theta.dtype)
     log_nodes = jax.vmap(log_weight)(nodes)
     shift = jnp.max(log_nodes)
-    total = 0.5 * np.pi * jnp.dot(jnp.asarray(w, nodes.dtype), jnp.exp(log_nodes - shift))
-    theta = jnp.atleast_1d(jnp.asarray(theta, nodes.dtype))
+    total = 0.5 * np.pi * jnp.dot(jnp.asarray(w, theta.dtype), jnp.exp(log_nodes - shift))
     return jnp.exp(jax.vmap(log_weight)(theta) - shift) / total
 
 
@@ -306,7 +309,7 @@ def sample_stationary(p: VibratingPlaneParameters, key, n: int, measure=revoluti
         it = contact_inertia(body.inertia, body.mass, body.surface.contact_point(gamma))
         return jnp.linalg.cholesky(jnp.linalg.inv(p.alpha * it)) @ z
 
-    log_weights = jax.jit(jax.vmap(log_weight))
+    log_weights = jax.jit(jax.vmap(log_weight), compiler_options=FAST_COMPILE)
     bound = float(jnp.max(log_weights(jnp.asarray(fibonacci_directions(8192))))) + 0.1
     accepted, k = [], key
     while sum(len(a) for a in accepted) < n:
@@ -319,5 +322,7 @@ def sample_stationary(p: VibratingPlaneParameters, key, n: int, measure=revoluti
         keep = jnp.log(jax.random.uniform(k_acc, (4 * n,))) < lw - bound
         accepted.append(np.asarray(g[keep]))
     gammas = jnp.asarray(np.concatenate(accepted)[:n])
-    omegas = jax.vmap(omega)(gammas, jax.random.normal(jax.random.fold_in(k, 1), (n, 3), gammas.dtype))
+    omegas = jax.jit(jax.vmap(omega), compiler_options=FAST_COMPILE)(
+        gammas, jax.random.normal(jax.random.fold_in(k, 1), (n, 3), gammas.dtype)
+    )
     return jnp.concatenate([omegas, gammas], axis=1)

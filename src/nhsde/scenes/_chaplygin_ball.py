@@ -31,6 +31,7 @@ import jax.numpy as jnp
 
 from .._params import AbstractParameters, parameter
 from .._system import StateLayout, StochasticSystem
+from ..bodies import position_rates
 
 __all__ = ["ChaplyginBall", "ChaplyginBallParameters", "chaplygin_ball_measure", "chaplygin_ball_omega"]
 
@@ -73,13 +74,9 @@ def _drift(t, y, p):
     m_vec, gamma = y[:3], y[3:6]
     omega = chaplygin_ball_omega(m_vec, gamma / jnp.linalg.norm(gamma), p)
     parts = [jnp.cross(m_vec, omega) - 2 * p.eps * omega, jnp.cross(gamma, omega)]
-    if y.shape[0] > 6:
-        # α̇ = α × ω;  contact point: ẋ = (α, ṙ), ẏ = (γ × α, ṙ), ṙ = −R γ̇
-        alpha = y[6:9]
-        r_dot = -p.radius * jnp.cross(gamma, omega) / jnp.linalg.norm(gamma)
-        a = alpha / jnp.linalg.norm(alpha)
+    if y.shape[0] > 6:  # the contact point r = −Rγ moves with ṙ = −R γ̇
         n = gamma / jnp.linalg.norm(gamma)
-        parts += [jnp.cross(alpha, omega), jnp.stack([jnp.dot(a, r_dot), jnp.dot(jnp.cross(n, a), r_dot)])]
+        parts.append(position_rates(y[6:9], omega, n, -p.radius * jnp.cross(n, omega)))
     return jnp.concatenate(parts)
 
 
