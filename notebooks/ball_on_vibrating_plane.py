@@ -74,51 +74,20 @@
 # (default `notebooks/_output`).
 
 # %%
-import os
-import sys
 import time
-from pathlib import Path
-
-import matplotlib
-import matplotlib.ticker
-
-_IN_JUPYTER = "ipykernel" in sys.modules
-if not _IN_JUPYTER and sys.platform.startswith("linux") and not (
-    os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
-):
-    matplotlib.use("Agg")  # no display: render to files only
 
 import jax
 import jax.numpy as jnp
+import matplotlib
 import matplotlib.pyplot as plt
+import matplotlib.ticker
 import numpy as np
 
 import nhsde
+from nhsde import plot
 from nhsde.scenes import BallOnVibratingPlane, ball_covariances
 
-
-def _default_out() -> Path:
-    try:
-        return Path(__file__).resolve().parent / "_output"
-    except NameError:  # running inside Jupyter: no __file__
-        return Path("notebooks/_output") if Path("notebooks").is_dir() else Path("_output")
-
-
-OUT = Path(os.environ.get("NHSDE_NOTEBOOK_OUT") or _default_out())
-OUT.mkdir(parents=True, exist_ok=True)
 T_START = time.perf_counter()
-
-
-def finish(fig, name: str) -> Path:
-    """Save ``fig`` as ``OUT/name``; show it inline in Jupyter, close it otherwise."""
-    path = OUT / name
-    fig.savefig(path, dpi=120, bbox_inches="tight")
-    print(f"saved {path}")
-    if _IN_JUPYTER:
-        plt.show()
-    else:
-        plt.close(fig)
-    return path
 
 
 def z_score(mc, se, exact):
@@ -128,7 +97,7 @@ def z_score(mc, se, exact):
         return np.where(se > 0, (mc - exact) / se, np.nan)
 
 
-print(f"nhsde {nhsde.__version__}, jax {jax.__version__} on {jax.devices()[0].platform}; figures -> {OUT}")
+print(f"nhsde {nhsde.__version__}, jax {jax.__version__} on {jax.devices()[0].platform}; figures -> {plot.figure_dir()}")
 
 # %% [markdown]
 # ## Parameters
@@ -273,7 +242,7 @@ fig.suptitle(
     rf"{SOLVER}, $\Delta t={DT}$"
 )
 fig.tight_layout()
-finish(fig, "ball_covariances.png")
+plot.save(fig, "ball_covariances.png")
 
 # %% [markdown]
 # ## 2. Sensitivities by differentiating through the simulation
@@ -415,7 +384,7 @@ for col, (title, sign, curve, approx, mc_g, mc_se, exact) in enumerate(panels):
 axes[1, 0].set_ylabel(r"(MC − exact) / SE of $\partial k_{xx}$")
 fig.suptitle(rf"Sensitivities of $k_{{xx}}$ at $t_1={T1}$, $\nu={NU_G}$, $\delta={DELTA:.4f}$")
 fig.tight_layout()
-finish(fig, "ball_gradients.png")
+plot.save(fig, "ball_gradients.png")
 
 # %% [markdown]
 # ## 3. The distribution of $u_x(t_1)$
@@ -477,7 +446,7 @@ ax.set_title(rf"Velocity at $t_1 = {T1}$ ($\varepsilon={EPS}$, $\nu={NU}$)")
 ax.legend(fontsize=8)
 ax.grid(alpha=0.3)
 fig.tight_layout()
-finish(fig, "ball_u_histogram.png")
+plot.save(fig, "ball_u_histogram.png")
 
 # %%
 print(f"notebook finished in {time.perf_counter() - T_START:.1f} s")

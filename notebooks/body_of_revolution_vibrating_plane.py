@@ -25,20 +25,16 @@
 # vibration cannot change: from rest (`J = 0`) it does not reach S0's law.
 
 # %%
-import os
 import time
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import matplotlib
-
-matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
 import nhsde
 import nhsde.bodies as B
+from nhsde import plot
 from nhsde.scenes import (
     BodyOnVibratingPlane,
     sample_stationary,
@@ -46,8 +42,6 @@ from nhsde.scenes import (
 )
 
 jax.config.update("jax_enable_x64", True)
-OUT = Path(os.environ.get("NHSDE_NOTEBOOK_OUT", Path(__file__).resolve().parent / "_output"))
-OUT.mkdir(parents=True, exist_ok=True)
 start = time.time()
 EDGES = np.linspace(0.0, np.pi, 25)
 THETA = np.linspace(0.0, np.pi, 400)
@@ -88,7 +82,7 @@ for ax, (eps, nu) in zip(axes, [(1.0, 2.0), (1.0, 4.0)]):
     ax.set_ylabel("density")
     ax.legend(fontsize=8)
 fig.tight_layout()
-fig.savefig(OUT / "nutation_density_spheroid.png", dpi=110)
+plot.save(fig, "nutation_density_spheroid.png", dpi=110)
 
 # %% [markdown]
 # ## Routh's sphere: Jellett's integral survives the vibration
@@ -112,5 +106,5 @@ ax.set_xlabel("nutation angle θ")
 ax.set_ylabel("density")
 ax.legend(fontsize=8)
 fig.tight_layout()
-fig.savefig(OUT / "nutation_density_routh_sphere.png", dpi=110)
+plot.save(fig, "nutation_density_routh_sphere.png", dpi=110)
 print(f"total {time.time() - start:.1f} s")

@@ -31,24 +31,18 @@
 # kept by contact.
 
 # %%
-import os
-from pathlib import Path
 
 import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import matplotlib
-
-matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
 from nhsde import mechanics as mech
+from nhsde import plot
 from nhsde.scenes import BeadOnRotatingRod, BeghinPlate
 
 jax.config.update("jax_enable_x64", True)
-OUT = Path(os.environ.get("NHSDE_NOTEBOOK_OUT", Path(__file__).resolve().parent / "_output"))
-OUT.mkdir(parents=True, exist_ok=True)
 
 
 def solve(form, y0, ts, extra=None):
@@ -115,7 +109,7 @@ ax[1].set_ylabel(r"$\lambda$")
 ax[1].legend()
 ax[1].set_title("the reaction by two routes")
 fig.tight_layout()
-fig.savefig(OUT / "rod_energy_work.png", dpi=110)
+plot.save(fig, "rod_energy_work.png", dpi=110)
 
 # %% [markdown]
 # ## 2. Gauss's principle, drawn
@@ -148,7 +142,7 @@ ax.set_aspect("equal")
 ax.legend(loc="lower left", fontsize=8)
 ax.set_title(f"compulsion Z at t = {float(ti):.2f}")
 fig.tight_layout()
-fig.savefig(OUT / "gauss_compulsion.png", dpi=110)
+plot.save(fig, "gauss_compulsion.png", dpi=110)
 
 # %% [markdown]
 # ## 3. Beghin's plate: servo-constraint versus contact
@@ -207,5 +201,5 @@ ax[1].set_xlabel("t")
 ax[1].legend(fontsize=8)
 ax[1].set_title("reactions")
 fig.tight_layout()
-fig.savefig(OUT / "beghin_servo_vs_contact.png", dpi=110)
-print("figures in", OUT)
+plot.save(fig, "beghin_servo_vs_contact.png", dpi=110)
+print("figures in", plot.figure_dir())

@@ -63,18 +63,7 @@
 # `notebooks/_output`).
 
 # %%
-import os
-import sys
 import time
-from pathlib import Path
-
-import matplotlib
-
-_IN_JUPYTER = "ipykernel" in sys.modules
-if not _IN_JUPYTER and sys.platform.startswith("linux") and not (
-    os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
-):
-    matplotlib.use("Agg")  # no display: render to files only
 
 import jax
 
@@ -89,36 +78,14 @@ import nhsde
 from nhsde import fit, plot
 from nhsde.scenes import BallOnVibratingPlane, ChaplyginSleigh, ball_covariances
 
-
-def _default_out() -> Path:
-    try:
-        return Path(__file__).resolve().parent / "_output"
-    except NameError:  # running inside Jupyter: no __file__
-        return Path("notebooks/_output") if Path("notebooks").is_dir() else Path("_output")
-
-
-OUT = Path(os.environ.get("NHSDE_NOTEBOOK_OUT") or _default_out())
-OUT.mkdir(parents=True, exist_ok=True)
 T_START = time.perf_counter()
-
-
-def finish(fig, name: str) -> Path:
-    """Save ``fig`` as ``OUT/name``; show it inline in Jupyter, close it otherwise."""
-    path = OUT / name
-    fig.savefig(path, dpi=120, bbox_inches="tight")
-    print(f"saved {path}")
-    if _IN_JUPYTER:
-        plt.show()
-    else:
-        plt.close(fig)
-    return path
 
 
 def z_scores(result, truth):
     return (result.values - np.asarray(truth)) / result.se
 
 
-print(f"nhsde {nhsde.__version__}, jax {jax.__version__}; figures -> {OUT}")
+print(f"nhsde {nhsde.__version__}, jax {jax.__version__}; figures -> {plot.figure_dir()}")
 
 # %% [markdown]
 # ## 1. The ball: synthetic data
@@ -197,7 +164,7 @@ for col, (label, (i, j)) in enumerate({"k_xx": (0, 0), "k_xu": (0, 1), "k_uu": (
     ax.legend(fontsize=7, loc="lower right")
 fig.suptitle("Ball on a vibrating plane: observed covariances and the fitted closed form")
 fig.tight_layout()
-finish(fig, "fitting_ball_covariances.png")
+plot.save(fig, "fitting_ball_covariances.png")
 
 # %% [markdown]
 # **Figure 2.** The $\chi^2$ landscape of the closed-form model over
@@ -243,7 +210,7 @@ ax.set(xlabel=r"$\varepsilon$", ylabel=r"$\nu$", title="estimates and their 2-SE
 ax.grid(alpha=0.3)
 ax.legend(fontsize=8)
 fig.tight_layout()
-finish(fig, "fitting_ball_landscape.png")
+plot.save(fig, "fitting_ball_landscape.png")
 
 # %% [markdown]
 # ## 3. Are the error bars honest?
@@ -289,7 +256,7 @@ plot.density(axes[2], np.array(chi2s), stats.chi2(res.dof).pdf, bins=8, label=f"
 axes[2].set(title="goodness of fit", xlabel=r"$\chi^2$ of each fit")
 fig.suptitle("Calibration of the reported standard errors (grey: ±2 SE of a histogram of that many fits)")
 fig.tight_layout()
-finish(fig, "fitting_calibration.png")
+plot.save(fig, "fitting_calibration.png")
 
 # %% [markdown]
 # ## 4. A nonlinear scene: the noisy Chaplygin sleigh
@@ -353,7 +320,7 @@ for ax, (title, value, err, pick) in zip(axes, panels):
 axes[0].legend(fontsize=7)
 fig.suptitle(r"Noisy Chaplygin sleigh: data and fitted models ($\varepsilon=0.5$, $\nu=0.8$ true)")
 fig.tight_layout()
-finish(fig, "fitting_sleigh.png")
+plot.save(fig, "fitting_sleigh.png")
 
 # %%
 print(f"\nnotebook ran in {time.perf_counter() - T_START:.0f} s")

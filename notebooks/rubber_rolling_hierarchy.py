@@ -26,25 +26,19 @@
 #   as `(l, L/G) → (l + π, −L/G)`.
 
 # %%
-import os
 import time
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import matplotlib
-
-matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
 import nhsde.analysis as A
 import nhsde.bodies as B
+from nhsde import plot
 from nhsde.scenes import RollingBody
 
 jax.config.update("jax_enable_x64", True)
-OUT = Path(os.environ.get("NHSDE_NOTEBOOK_OUT", Path(__file__).resolve().parent / "_output"))
-OUT.mkdir(parents=True, exist_ok=True)
 start = time.time()
 
 
@@ -99,7 +93,7 @@ axes[0].set_title("Fig. 3: balanced ball I = (1, 2, 3), R = 3, g₀ = 0")
 draw(axes[1], s4, c="k")
 axes[1].set_title("Fig. 4: unbalanced ball, c = (0, 0, 2.9), U = 0, g₀ = π")
 fig.tight_layout()
-fig.savefig(OUT / "poincare_integrable.png", dpi=110)
+plot.save(fig, "poincare_integrable.png", dpi=110)
 
 # %% [markdown]
 # ## Figs. 7 and 8: the unbalanced ball in gravity (`h = 50`, `g₀ = π`, `g = 9.8`)
@@ -123,5 +117,5 @@ for row, offset in enumerate([(1.0, 1.4, 0.0), (1.0, 1.5, 0.5)]):
     draw(axes[row, 1], mirrored, skip=50, c="r", alpha=0.5)
     axes[row, 1].set_title("R(0) applied to the red points")
 fig.tight_layout()
-fig.savefig(OUT / "poincare_unbalanced_gravity.png", dpi=110)
+plot.save(fig, "poincare_unbalanced_gravity.png", dpi=110)
 print(f"total {time.time() - start:.1f} s")

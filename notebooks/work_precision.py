@@ -38,18 +38,7 @@
 # `$NHSDE_NOTEBOOK_OUT` (default `notebooks/_output`).
 
 # %%
-import os
-import sys
 import time
-from pathlib import Path
-
-import matplotlib
-
-_IN_JUPYTER = "ipykernel" in sys.modules
-if not _IN_JUPYTER and sys.platform.startswith("linux") and not (
-    os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
-):
-    matplotlib.use("Agg")  # no display: render to files only
 
 import jax
 
@@ -60,35 +49,14 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 import nhsde
+from nhsde import plot
 from nhsde._work_precision import cheapest_setting, work_precision
 from nhsde.scenes import BallOnVibratingPlane, ChaplyginSleigh, ball_covariances
 
-
-def _default_out() -> Path:
-    try:
-        return Path(__file__).resolve().parent / "_output"
-    except NameError:  # running inside Jupyter: no __file__
-        return Path("notebooks/_output") if Path("notebooks").is_dir() else Path("_output")
-
-
-OUT = Path(os.environ.get("NHSDE_NOTEBOOK_OUT") or _default_out())
-OUT.mkdir(parents=True, exist_ok=True)
 T_START = time.perf_counter()
 
 
-def finish(fig, name: str) -> Path:
-    """Save ``fig`` as ``OUT/name``; show it inline in Jupyter, close it otherwise."""
-    path = OUT / name
-    fig.savefig(path, dpi=120, bbox_inches="tight")
-    print(f"saved {path}")
-    if _IN_JUPYTER:
-        plt.show()
-    else:
-        plt.close(fig)
-    return path
-
-
-print(f"nhsde {nhsde.__version__}, jax {jax.__version__}; solvers {list(nhsde.SOLVERS)}; figures -> {OUT}")
+print(f"nhsde {nhsde.__version__}, jax {jax.__version__}; solvers {list(nhsde.SOLVERS)}; figures -> {plot.figure_dir()}")
 
 # %% [markdown]
 # ## The two cases
@@ -175,7 +143,7 @@ for col, (name, rs) in enumerate(rows.items()):
         ax.legend(fontsize=7)
 fig.suptitle(f"Work-precision, {N_PATHS} paths, $\\Delta t \\in$ {DTS}")
 fig.tight_layout()
-finish(fig, "work_precision.png")
+plot.save(fig, "work_precision.png")
 
 # %% [markdown]
 # ## The cheapest adequate setting

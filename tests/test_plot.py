@@ -85,3 +85,15 @@ def test_poincare_section_and_confidence_ellipse():
     assert np.isclose(ellipse.width, 8.0) and np.isclose(ellipse.height, 4.0)
     assert np.isclose(ellipse.angle % 180, 0.0)
     plt.close("all")
+
+
+def test_save_writes_the_figure_where_the_notebooks_are_told(tmp_path, monkeypatch):
+    monkeypatch.setenv("NHSDE_NOTEBOOK_OUT", str(tmp_path / "figures"))
+    fig, ax = plt.subplots()
+    ax.plot([0, 1], [1, 0])
+    path = plot.save(fig, "line.png")
+    assert path == tmp_path / "figures" / "line.png" and path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not plt.fignum_exists(fig.number)  # closed outside Jupyter
+    monkeypatch.delenv("NHSDE_NOTEBOOK_OUT")
+    monkeypatch.chdir(tmp_path)
+    assert plot.figure_dir().resolve() == (tmp_path / "_output").resolve()

@@ -7,11 +7,36 @@ nhsde does not need it (``pip install nhsde[plot]``).  Every function draws on
 
 from __future__ import annotations
 
+import os
+import sys
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 
-__all__ = ["band", "confidence_ellipse", "density", "drift_curves", "poincare_section"]
+__all__ = ["band", "confidence_ellipse", "density", "drift_curves", "figure_dir", "poincare_section", "save"]
+
+
+def figure_dir() -> Path:
+    """Where :func:`save` writes: ``$NHSDE_NOTEBOOK_OUT``, else ``notebooks/_output`` from the repository
+    root, else ``_output`` in the current directory (created if missing)."""
+    out = Path(os.environ.get("NHSDE_NOTEBOOK_OUT") or ("notebooks/_output" if Path("notebooks").is_dir() else "_output"))
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+def save(fig, name: str, *, dpi: int = 120) -> Path:
+    """Write ``fig`` as ``figure_dir()/name``; show it inline in Jupyter, close it otherwise."""
+    import matplotlib.pyplot as plt
+
+    path = figure_dir() / name
+    fig.savefig(path, dpi=dpi, bbox_inches="tight")
+    print(f"saved {path}")
+    if "ipykernel" in sys.modules:
+        plt.show()
+    else:
+        plt.close(fig)
+    return path
 
 
 def _axes(ax, n=1, **subplots):
