@@ -34,6 +34,7 @@ EXPECTED_PNGS = {
     "controlled_systems.py": {"rod_energy_work.png", "gauss_compulsion.png", "beghin_servo_vs_contact.png"},
     "rubber_rolling_hierarchy.py": {"poincare_integrable.png", "poincare_unbalanced_gravity.png"},
     "body_of_revolution_vibrating_plane.py": {"nutation_density_spheroid.png", "nutation_density_routh_sphere.png"},
+    "rattleback.py": {"rattleback_growth_rates.png", "rattleback_growth_fit.png", "rattleback_reversal.png"},
 }
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"

@@ -109,3 +109,17 @@ def test_cli_rejects_bad_input():
     ]:
         with pytest.raises(SystemExit, match=match):
             main(argv)
+
+
+def test_cli_runs_a_noiseless_scene_and_reports_the_missing_nu_derivative(capsys, tmp_path):
+    """At ν = 0 paths scale like √ν: d/dν does not exist; the CLI says so (nan) instead of failing.
+    The upright disk rolling straight without friction keeps its speed: x(t) = R Ω t."""
+    out = tmp_path / "disk.npz"
+    assert main(["simulate", "rolling-disk", "--paths", "64", "--t1", "0.5", "--dt", "0.01", "--x64",
+                 "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "d/d nu is nan: it does not exist at nu = 0" in text
+    data = np.load(out)
+    assert np.all(np.isnan(data["d_mean_d_nu"])) and np.all(np.isfinite(data["d_mean_d_eps"]))
+    x = data["mean"][-1, 0]
+    assert abs(x - 0.5 * 3.0) < 1e-9 * 1.5, x  # default radius 1, spin 3 rad/s

@@ -114,6 +114,7 @@ def _cmd_simulate(args):
         if getattr(args, name) is None:
             setattr(args, name, default)
     import jax
+    import jax.numpy as jnp
 
     if args.x64:
         jax.config.update("jax_enable_x64", True)
@@ -143,10 +144,14 @@ def _cmd_simulate(args):
         return (ens.mean, ens.cov), ens
 
     p = system.params
+    # at ν = 0 paths scale like √ν: the ν-derivative does not exist and is reported as nan
+    argnums = (0, 1) if float(p.nu) > 0 else (0,)
     try:
-        (d_mean, d_cov), ens = jax.jacfwd(run, argnums=(0, 1), has_aux=True)(p.eps, p.nu)
+        (d_mean, d_cov), ens = jax.jacfwd(run, argnums=argnums, has_aux=True)(p.eps, p.nu)
     except (ValueError, TypeError, nhsde.SimulationError) as e:
         raise SystemExit(f"nhsde simulate: {e}") from None
+    if len(argnums) == 1:
+        d_mean, d_cov = (d_mean[0], jnp.full_like(d_mean[0], jnp.nan)), (d_cov[0], jnp.full_like(d_cov[0], jnp.nan))
     d_eps, d_nu = (d_mean[0], d_cov[0]), (d_mean[1], d_cov[1])
     n_failed = int(ens.n_failed)
     print(f"scene {args.scene}: " + ", ".join(f"{k}={float(getattr(p, k)):g}" for k, *_ in p.describe()))
@@ -154,7 +159,8 @@ def _cmd_simulate(args):
           f"failed paths: {n_failed}")
     names = ens.names
     last = -1
-    print(f"\nat t = {float(ens.ts[last]):g}  (mean ± standard error; derivatives by forward mode)")
+    print(f"\nat t = {float(ens.ts[last]):g}  (mean ± standard error; derivatives by forward mode"
+          + ("" if len(argnums) == 2 else "; d/d nu is nan: it does not exist at nu = 0") + ")")
     print(f"{'quantity':<22}{'value':>26}{'d/d eps':>14}{'d/d nu':>14}")
     for i, n in enumerate(names):
         role = ens.roles[i]

@@ -6,6 +6,15 @@
 - :func:`integral_rates`: ``dF/dt`` by autodiff; :func:`solve_flow` and
   :func:`integral_drift`: conservation along long, accurate, vmapped integrations.
 - :func:`poincare_section`: the map of S2 (1.18) on ``E = h``, ``g = g₀``.
+- :func:`linear_stability` (:func:`jacobian`, :class:`Stability`): eigenvalues of the
+  linearisation about a steady state in a family of steady states (S4 Theorem 4.1).
+- :func:`chaplygin_system`, :func:`steady_motions`, :func:`steady_stability`,
+  :func:`stability_boundary`: steady motions of Chaplygin systems (S4 (4.9)), the
+  Routh-reduced characteristic equation (4.19) and Andronov–Hopf points (Remark 4.6).
+- :func:`stationary_spread`, :func:`linear_residence_time`, :func:`residence_time`:
+  with friction and noise, the linearised (Ornstein–Uhlenbeck) spread about a
+  stable steady motion and the mean residence time near it, linearised and by
+  Monte Carlo.
 
 A vector field is any ``f(t, y, params)``, e.g. :class:`nhsde.bodies.RollingField`
 or a :class:`~nhsde.StochasticSystem`'s ``drift_fn``.
@@ -24,3 +33,22 @@ from ._poincare import PoincareSection as PoincareSection
 from ._poincare import andoyer as andoyer
 from ._poincare import from_andoyer as from_andoyer
 from ._poincare import poincare_section as poincare_section
+from ._residence import LinearResidence as LinearResidence
+from ._residence import Residence as Residence
+from ._residence import Spread as Spread
+from ._residence import linear_residence_time as linear_residence_time
+from ._residence import residence_time as residence_time
+from ._residence import stationary_spread as stationary_spread
+from ._stability import Stability as Stability
+from ._stability import jacobian as jacobian
+from ._stability import linear_stability as linear_stability
+from ._steady import ChaplyginSystem as ChaplyginSystem
+from ._steady import StabilityBoundary as StabilityBoundary
+from ._steady import SteadyMotions as SteadyMotions
+from ._steady import SteadyStability as SteadyStability
+from ._steady import chaplygin_system as chaplygin_system
+from ._steady import delta_matrix as delta_matrix
+from ._steady import routh_pencil as routh_pencil
+from ._steady import stability_boundary as stability_boundary
+from ._steady import steady_motions as steady_motions
+from ._steady import steady_stability as steady_stability

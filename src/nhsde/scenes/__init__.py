@@ -18,6 +18,8 @@ from ._disk import DiskParameters as DiskParameters
 from ._disk import VerticalRollingDisk as VerticalRollingDisk
 from ._rolling_ball import BallFromLagrangian as BallFromLagrangian
 from ._rolling_ball import RollingBallParameters as RollingBallParameters
+from ._rolling_disk import RollingDisk as RollingDisk
+from ._rolling_disk import RollingDiskParameters as RollingDiskParameters
 from ._rotating_rod import BeadOnRotatingRod as BeadOnRotatingRod
 from ._rotating_rod import RodParameters as RodParameters
 from ._spec_scene import AbstractSpecScene as AbstractSpecScene
@@ -28,6 +30,7 @@ SCENES = {
     "chaplygin-sleigh": ChaplyginSleigh,
     "chaplygin-sleigh-from-spec": ChaplyginSleighFromSpec,
     "vertical-rolling-disk": VerticalRollingDisk,
+    "rolling-disk": RollingDisk,
     "contact-oscillator": ContactOscillator,
     "beghin-plate": BeghinPlate,
     "ball-from-lagrangian": BallFromLagrangian,
@@ -51,6 +54,7 @@ from ._chaplygin_ball import ChaplyginBall as ChaplyginBall
 from ._chaplygin_ball import ChaplyginBallParameters as ChaplyginBallParameters
 from ._chaplygin_ball import chaplygin_ball_measure as chaplygin_ball_measure
 from ._chaplygin_ball import chaplygin_ball_omega as chaplygin_ball_omega
+from ._rattleback import Rattleback as Rattleback
 from ._rolling import FlatBaseOnSphere as FlatBaseOnSphere
 from ._rolling import RollingBody as RollingBody
 

@@ -201,7 +201,7 @@ class BodyOnVibratingPlane(eqx.Module):
             names += ("pi_1", "pi_2", "pi_3")
             roles += ("random_parameter",) * 3
         # b depends on γ only and γ carries no noise, so Σⱼ(∂bⱼ/∂Z)bⱼ = 0 and the Itô and Stratonovich
-        # forms coincide; tagged Stratonovich so that Heun (second order in the drift) needs no conversion.
+        # forms coincide; tagged Stratonovich so that Euler–Heun (first order in the drift) needs no conversion.
         return StochasticSystem(
             drift_fn=_Drift(layout), diffusion_fn=_Diffusion(layout), params=self.params,
             layout=StateLayout(names, roles), noise_dim=3, interpretation="stratonovich",
