@@ -7,13 +7,16 @@ Run from the repository root::
     python benchmarks/throughput.py --paths 8192 --steps 500 --repeats 3
 
 Everything is measured in one process, float32, dt = 0.01, on the same SDE for
-every implementation, for two scenes:
+every implementation, for three scenes:
 
 - ``ball``:   nhsde.scenes.BallOnVibratingPlane (linear, state (x, y, u_x, u_y));
-- ``sleigh``: nhsde.scenes.ChaplyginSleigh      (nonlinear, state (x, y, θ, v, ω)).
+- ``sleigh``: nhsde.scenes.ChaplyginSleigh      (nonlinear, state (x, y, θ, v, ω));
+- ``chaplygin-ball``: nhsde.scenes.ChaplyginBall(drift=True), a rolling body
+              (nonlinear, state (M, γ, α, x, y): angular momentum about the
+              contact point, vertical and horizontal axis in the body, contact point).
 
-The statistic is the fluctuation drift K_xx(t1) = Var x(t1) over the paths; the
-gradients are taken with respect to (eps, nu).  Implementations:
+The statistic is the fluctuation drift K_xx(t1) = Var x(t1) of the contact point
+over the paths; the gradients are taken with respect to (eps, nu).  Implementations:
 
 - ``nhsde``        ``nhsde.simulate(..., solver="euler", save=Save(n=2))`` inside a
                    ``jax.jit`` of ``(eps, nu) -> K_xx(t1)``; also the plain call to
@@ -29,7 +32,7 @@ gradients are taken with respect to (eps, nu).  Implementations:
                    trajectory-step.
 
 The competitors re-write the scenes' drift and diffusion directly (from the
-equations in ``src/nhsde/scenes/_ball.py`` and ``_sleigh.py``), so they are
+equations in ``src/nhsde/scenes/_ball.py``, ``_sleigh.py`` and ``_chaplygin_ball.py``), so they are
 independent implementations; every implementation's K_xx(t1) is checked against
 nhsde's within Monte-Carlo error (and, for the ball, against the exact value).
 
@@ -60,7 +63,7 @@ import jax.random as jr
 import numpy as np
 
 import nhsde
-from nhsde.scenes import BallOnVibratingPlane, ChaplyginSleigh
+from nhsde.scenes import BallOnVibratingPlane, ChaplyginBall, ChaplyginSleigh
 from nhsde.scenes._ball import ball_covariances
 
 DT = 0.01
@@ -76,14 +79,29 @@ DTYPE = jnp.float32
 #           dx = v cos θ dt, dy = v sin θ dt, dθ = ω dt,
 #           dv = (a ω² − 2ε v) dt + √ν/√m dW₁,
 #           dω = (−(m a/J) v ω − 2ε ω) dt + √ν/√J dW₂
+#   chaplygin-ball: m = R = 1 (D = m R² = 1), I = diag(0.3, 0.4, 0.5), A = (I + D E)⁻¹,
+#           n = γ/|γ|,  ω = A M + D (n, A M)/(1 − D (n, A n)) A n   (Ĩ⁻¹M, Sherman–Morrison),
+#           dM = (M × ω − 2ε ω) dt + √ν dW,   dγ = γ × ω dt,   dα = α × ω dt,
+#           ṙ = −R n × ω,  dx = (α/|α|, ṙ) dt,  dy = (n × α/|α|, ṙ) dt       (3 noise axes)
 
 BALL_DELTA = 1.0 / (1.0 + 0.4)
 SLEIGH_M, SLEIGH_I, SLEIGH_A = 1.0, 1.0, 1.0
 SLEIGH_J = SLEIGH_I + SLEIGH_M * SLEIGH_A**2
+CB_D, CB_R = 1.0, 1.0
+CB_A = tuple(1.0 / (i + CB_D) for i in (0.3, 0.4, 0.5))
 
+
+def _chaplygin_ball(**params):
+    return ChaplyginBall(drift=True, **params)
+
+
+# x: index of the contact point's x in the state (the statistic is Var x(t1))
 SCENES = {
-    "ball": dict(make=BallOnVibratingPlane, eps=1.0, nu=1.0, y0=(0.0, 0.0, 0.0, 0.0), m=2),
-    "sleigh": dict(make=ChaplyginSleigh, eps=0.1, nu=1.0, y0=(0.0, 0.0, 0.0, 1.0, 0.0), m=2),
+    "ball": dict(make=BallOnVibratingPlane, eps=1.0, nu=1.0, y0=(0.0, 0.0, 0.0, 0.0), m=2, x=0),
+    "sleigh": dict(make=ChaplyginSleigh, eps=0.1, nu=1.0, y0=(0.0, 0.0, 0.0, 1.0, 0.0), m=2, x=0),
+    "chaplygin-ball": dict(
+        make=_chaplygin_ball, eps=0.5, nu=1.0, y0=(0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0), m=3, x=9
+    ),
 }
 
 
@@ -106,6 +124,27 @@ def sleigh_em_jnp(y, dw, eps, nu, dt):
             th + w * dt,
             v + dv * dt + s / math.sqrt(SLEIGH_M) * dw[:, 0],
             w + dom * dt + s / math.sqrt(SLEIGH_J) * dw[:, 1],
+        ],
+        axis=1,
+    )
+
+
+def cb_em_jnp(y, dw, eps, nu, dt):
+    m, g, al = y[:, 0:3], y[:, 3:6], y[:, 6:9]
+    a = jnp.asarray(CB_A, y.dtype)
+    n = g / jnp.linalg.norm(g, axis=1, keepdims=True)
+    am, an_ = a * m, a * n
+    k = CB_D * jnp.sum(n * am, axis=1, keepdims=True) / (1.0 - CB_D * jnp.sum(n * an_, axis=1, keepdims=True))
+    w = am + k * an_
+    ua = al / jnp.linalg.norm(al, axis=1, keepdims=True)
+    rdot = -CB_R * jnp.cross(n, w)
+    xy = jnp.stack([jnp.sum(ua * rdot, axis=1), jnp.sum(jnp.cross(n, ua) * rdot, axis=1)], axis=1)
+    return jnp.concatenate(
+        [
+            m + (jnp.cross(m, w) - 2.0 * eps * w) * dt + jnp.sqrt(nu) * dw,
+            g + jnp.cross(g, w) * dt,
+            al + jnp.cross(al, w) * dt,
+            y[:, 9:11] + xy * dt,
         ],
         axis=1,
     )
@@ -134,6 +173,38 @@ def sleigh_em_numpy(y, dw, eps, nu, dt):
     y[:, 2] += w * f(dt)
     y[:, 3] += dv * f(dt) + f(s / math.sqrt(SLEIGH_M)) * dw[:, 0]
     y[:, 4] += dom * f(dt) + f(s / math.sqrt(SLEIGH_J)) * dw[:, 1]
+
+
+def _cross_np(u, v):
+    """Row-wise cross product of (n, 3) float32 arrays (np.cross without its copies)."""
+    out = np.empty_like(u)
+    out[:, 0] = u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1]
+    out[:, 1] = u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2]
+    out[:, 2] = u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]
+    return out
+
+
+def cb_em_numpy(y, dw, eps, nu, dt):
+    f = np.float32
+    m, g, al = y[:, 0:3], y[:, 3:6], y[:, 6:9]
+    a = np.asarray(CB_A, np.float32)
+    n = g / np.sqrt(np.einsum("ij,ij->i", g, g))[:, None]
+    am, an_ = a * m, a * n
+    k = f(CB_D) * np.einsum("ij,ij->i", n, am) / (f(1.0) - f(CB_D) * np.einsum("ij,ij->i", n, an_))
+    w = am + k[:, None] * an_
+    ua = al / np.sqrt(np.einsum("ij,ij->i", al, al))[:, None]
+    rdot = f(-CB_R) * _cross_np(n, w)
+    x_inc = np.einsum("ij,ij->i", ua, rdot) * f(dt)
+    y_inc = np.einsum("ij,ij->i", _cross_np(n, ua), rdot) * f(dt)
+    m_inc = (_cross_np(m, w) - f(2.0 * eps) * w) * f(dt)
+    g_inc, al_inc = _cross_np(g, w) * f(dt), _cross_np(al, w) * f(dt)
+    dw *= f(math.sqrt(nu))
+    m += m_inc
+    m += dw
+    g += g_inc
+    al += al_inc
+    y[:, 9] += x_inc
+    y[:, 10] += y_inc
 
 
 # --- per-path vector fields for diffrax (competitor c): f(t, y, args), y (d,)
@@ -170,9 +241,31 @@ def sleigh_diffusion_dfx(t, y, args):
     return jnp.concatenate([jnp.zeros((3, 2), y.dtype), jnp.diag(diag)])
 
 
-EM_JNP = {"ball": ball_em_jnp, "sleigh": sleigh_em_jnp}
-EM_NUMPY = {"ball": ball_em_numpy, "sleigh": sleigh_em_numpy}
-VF_DFX = {"ball": (ball_drift_dfx, ball_diffusion_dfx), "sleigh": (sleigh_drift_dfx, sleigh_diffusion_dfx)}
+def cb_drift_dfx(t, y, args):
+    eps, nu = args
+    m, g, al = y[0:3], y[3:6], y[6:9]
+    a = jnp.asarray(CB_A, y.dtype)
+    n = g / jnp.linalg.norm(g)
+    am, an_ = a * m, a * n
+    w = am + CB_D * jnp.dot(n, am) / (1.0 - CB_D * jnp.dot(n, an_)) * an_
+    ua = al / jnp.linalg.norm(al)
+    rdot = -CB_R * jnp.cross(n, w)
+    xy = jnp.stack([jnp.dot(ua, rdot), jnp.dot(jnp.cross(n, ua), rdot)])
+    return jnp.concatenate([jnp.cross(m, w) - 2.0 * eps * w, jnp.cross(g, w), jnp.cross(al, w), xy])
+
+
+def cb_diffusion_dfx(t, y, args):
+    eps, nu = args
+    return jnp.concatenate([jnp.sqrt(nu) * jnp.eye(3, dtype=y.dtype), jnp.zeros((8, 3), y.dtype)])
+
+
+EM_JNP = {"ball": ball_em_jnp, "sleigh": sleigh_em_jnp, "chaplygin-ball": cb_em_jnp}
+EM_NUMPY = {"ball": ball_em_numpy, "sleigh": sleigh_em_numpy, "chaplygin-ball": cb_em_numpy}
+VF_DFX = {
+    "ball": (ball_drift_dfx, ball_diffusion_dfx),
+    "sleigh": (sleigh_drift_dfx, sleigh_diffusion_dfx),
+    "chaplygin-ball": (cb_drift_dfx, cb_diffusion_dfx),
+}
 
 
 # ----------------------------------------------------------------------------- statistic
@@ -228,7 +321,8 @@ def nhsde_direct(scene, n_paths, steps):
         ens = nhsde.simulate(
             system, y0, key, n_paths=n_paths, t1=steps * DT, dt=DT, solver="euler", save=nhsde.Save(n=2)
         )
-        return nhsde.statistics.fluctuation_drift(ens)[-1, 0, 0], ens.cov_se[-1, 0, 0]
+        stats = nhsde.statistics.drift_statistics(ens)
+        return stats.fluctuation[-1, 0, 0], stats.fluctuation_se[-1, 0, 0]
 
     return f
 
@@ -248,7 +342,7 @@ def scan_stat(scene, n_paths, steps):
             return em(y, dw, eps, nu, DT), None
 
         y, _ = jax.lax.scan(body, y0, jnp.arange(steps))
-        return var_and_se(y[:, 0])
+        return var_and_se(y[:, cfg["x"]])
 
     return f
 
@@ -268,7 +362,7 @@ def numpy_stat(scene, n_paths, steps):
             dw = rng.standard_normal((n_paths, m), dtype=np.float32)
             dw *= sqrt_dt
             em(y, dw, eps, nu, DT)
-        return var_and_se_numpy(y[:, 0])
+        return var_and_se_numpy(y[:, cfg["x"]])
 
     return f
 
@@ -292,7 +386,7 @@ def diffrax_stat(scene, n_paths, steps):
             return sol.ys[0], sol.stats["num_steps"]
 
         ys, nsteps = jax.vmap(one)(jr.split(key, n_paths))
-        var, se = var_and_se(ys[:, 0])
+        var, se = var_and_se(ys[:, cfg["x"]])
         return var, (se, jnp.max(nsteps))
 
     return f
@@ -451,7 +545,7 @@ def main(argv=None):
     p.add_argument("--steps", type=int, default=1000, help="Euler steps of dt=0.01 (default 1000)")
     p.add_argument("--repeats", type=int, default=5, help="timed rounds; the minimum is reported (default 5)")
     p.add_argument("--c-paths", type=int, default=256, help="paths for (c) plain diffrax (default 256; 0 skips)")
-    p.add_argument("--scenes", default="ball,sleigh", help="comma-separated: ball,sleigh")
+    p.add_argument("--scenes", default="ball,sleigh,chaplygin-ball", help="comma-separated: ball,sleigh,chaplygin-ball")
     p.add_argument("--quick", action="store_true", help="smoke test: 512 paths, 200 steps, 2 repeats, 64 (c) paths")
     p.add_argument("--json", default=str(Path(__file__).resolve().parent / "results" / "throughput.json"))
     args = p.parse_args(argv)
