@@ -74,7 +74,7 @@ a run file (TOML; every key is checked, unknown keys are errors):
   u_x = 0.0
 
   [solver]
-  name = "sra1"                       # euler, milstein, heun, sra1, ...
+  name = "sra1"                       # euler, milstein, heun, heun2, sra1, ...
   dt = 0.01
   t0 = 0.0
   t1 = 10.0
@@ -280,7 +280,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--paths", type=int, help="number of paths (default 4096)")
     sim.add_argument("--t1", type=float, help="final time (default 10)")
     sim.add_argument("--dt", type=float, help="time step (default 0.01)")
-    sim.add_argument("--solver", help="euler, milstein, heun or sra1 (default euler)")
+    sim.add_argument("--solver", help="euler, milstein, heun, heun2, sra1 or exponential (default euler)")
     sim.add_argument("--seed", type=int, help="random seed (default 0)")
     sim.add_argument("--save-points", type=int, help="save times from 0 to t1 (default 11)")
     sim.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="set a scene parameter")

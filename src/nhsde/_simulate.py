@@ -63,7 +63,12 @@ SOLVERS: dict[str, SolverInfo] = {
     "euler": SolverInfo(lambda s: dfx.Euler(), "ito", False, dfx.BrownianIncrement, 0.5, 1.0, "Euler–Maruyama (Itô)"),
     "milstein": SolverInfo(lambda s: dfx.ItoMilstein(), "ito", False, dfx.BrownianIncrement, 1.0, 1.0, "Milstein (Itô)"),
     "heun": SolverInfo(
-        lambda s: dfx.EulerHeun(), "stratonovich", False, dfx.BrownianIncrement, 0.5, 1.0, "Euler–Heun (Stratonovich)"
+        lambda s: dfx.EulerHeun(), "stratonovich", False, dfx.BrownianIncrement, 0.5, 1.0,
+        "Euler–Heun (Stratonovich): Euler in the drift, Heun in the noise",
+    ),
+    "heun2": SolverInfo(
+        lambda s: dfx.Heun(), "stratonovich", False, dfx.BrownianIncrement, 0.5, 1.0,
+        "Heun's method (Stratonovich): Heun in drift and noise, second order in the drift",
     ),
     "sra1": SolverInfo(
         lambda s: dfx.SRA1(scan_kind="lax"), "any", True, dfx.SpaceTimeLevyArea, 1.5, 1.5, "SRA1 stochastic Runge–Kutta (additive noise)"
@@ -517,7 +522,7 @@ def simulate(
     if info.additive_only and not system.additive_noise:
         raise ValueError(
             f"solver={solver!r} needs additive noise, but this system's diffusion depends on the state; "
-            "use 'euler', 'milstein' or 'heun'."
+            "use 'euler', 'milstein', 'heun' or 'heun2'."
         )
     if not system.noise.continuous and solver != "euler":
         raise ValueError(
