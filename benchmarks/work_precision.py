@@ -56,7 +56,7 @@ def ball_case():
         name="ball", system=scene.build(), y0=scene.initial_state().astype(jnp.float64), t1=t1,
         statistic=lambda ens: (ens.cov[-1, 0, 0], ens.cov_se[-1, 0, 0]), reference=reference,
         save=nhsde.Save(names=("x",), n=2), label="k_xx(t1)",
-        solvers=["euler", "milstein", "heun", "sra1", "exponential"],
+        solvers=["euler", "milstein", "heun", "heun2", "sra1", "exponential"],
     )
 
 
@@ -71,7 +71,7 @@ def sleigh_case():
         name="sleigh", system=scene.build(), y0=y0, t1=t1,
         statistic=lambda ens: (ens.mean[-1, 0], ens.mean_se[-1, 0]), reference=float(reference),
         save=nhsde.Save(names=("energy",), n=2), label="E[H](t1)",
-        solvers=["euler", "milstein", "heun", "sra1", "exponential"],
+        solvers=["euler", "milstein", "heun", "heun2", "sra1", "exponential"],
     )
 
 
@@ -91,7 +91,7 @@ def chaplygin_ball_case():
     return dict(
         name="chaplygin-ball", system=scene.build(), y0=scene.initial_state().astype(jnp.float64), t1=t1,
         statistic=lambda ens: (ens.mean[-1, 0], ens.mean_se[-1, 0]), reference=3 * nu / (8 * eps),
-        save=nhsde.Save(names=("energy",), n=2), label="E[H](t1)", solvers=["euler", "heun", "sra1"],
+        save=nhsde.Save(names=("energy",), n=2), label="E[H](t1)", solvers=["euler", "heun", "heun2", "sra1"],
     )
 
 
