@@ -68,7 +68,7 @@ def test_unknown_parameter_is_refused():
         (dict(t1=1.0, t0=2.0), ValueError, r"t1=1.0 must be > t0=2.0"),
         (dict(y0=jnp.zeros(3)), ValueError, r"y0 has shape \(3,\); expected \(4,\) or \(64, 4\)"),
         (dict(y0=jnp.array([0.0, jnp.nan, 0, 0])), ValueError, r"y0 contains non-finite"),
-        (dict(solver="rk4"), ValueError, r"solver='rk4'; allowed: euler, milstein, heun, sra1"),
+        (dict(solver="rk4"), ValueError, r"solver='rk4'; allowed: euler, milstein, heun, heun2, sra1, exponential"),
         (dict(chunk_size=100), ValueError, r"chunk_size=100; must be a positive multiple of 64"),
         (dict(save=nhsde.Save(n=4)), ValueError, r"save.n=4: n − 1 must be ≥ 1 and divide the 10 steps"),
         (dict(save=nhsde.Save(names=("z",))), ValueError, r"unknown name 'z'"),

@@ -125,6 +125,15 @@ class StochasticSystem(eqx.Module):
     def state_dim(self) -> int:
         return self.layout.size
 
+    def state(self, y, name: str = "y0"):
+        """``y`` as one floating-point state of this system; a wrong shape raises naming ``name``."""
+        y = jnp.asarray(y)
+        if not jnp.issubdtype(y.dtype, jnp.floating):
+            y = y.astype(jnp.result_type(float))
+        if y.shape != (self.state_dim,):
+            raise ValueError(f"{name} has shape {y.shape}; expected ({self.state_dim},) for the state {self.layout.names}.")
+        return y
+
     def drift(self, t, y, args):
         return self.drift_fn(t, y, args)
 

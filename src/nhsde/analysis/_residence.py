@@ -72,16 +72,6 @@ def _ito_system(system) -> StochasticSystem:
     return system
 
 
-def _state(system, state):
-    d = system.state_dim
-    state = jnp.asarray(state)
-    if not jnp.issubdtype(state.dtype, jnp.floating):
-        state = state.astype(jnp.result_type(float))
-    if state.shape != (d,):
-        raise ValueError(f"state has shape {state.shape}; expected ({d},) for the state {system.layout.names}.")
-    return state
-
-
 def _concrete(*arrays) -> bool:
     return not any(isinstance(a, jax.core.Tracer) for a in arrays)
 
@@ -188,7 +178,7 @@ def stationary_spread(system: StochasticSystem, state, *, components=None, t: fl
     heading) are neutral and must be left out.  Differentiable in the parameters.
     """
     system = _ito_system(system)
-    state = _state(system, state)
+    state = system.state(state, "state")
     names = _components(system, components)
     a, q = _linearise(system, state, names, t, rtol)
     _check_hurwitz(a, names)
@@ -257,7 +247,7 @@ def linear_residence_time(
     """
     system = _ito_system(system)
     _wiener_only(system, "linear_residence_time")
-    state = _state(system, state)
+    state = system.state(state, "state")
     radius = _radius(radius)
     (a, q) = _linearise(system, state, (component,), t, rtol)
     _check_hurwitz(a, (component,))
@@ -424,7 +414,7 @@ def residence_time(
     """
     system = _ito_system(system)
     _wiener_only(system, "residence_time")
-    state = _state(system, state)
+    state = system.state(state, "state")
     i = system.layout.index(component)
     radius = _radius(radius)
     t1 = _number("t1", t1, positive=True)

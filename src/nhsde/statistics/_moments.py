@@ -175,11 +175,7 @@ def _closure(system: StochasticSystem, dtype, order: int) -> _Closure:
 
 def _initial(system, y0, cov0):
     d = system.state_dim
-    y0 = jnp.asarray(y0)
-    if not jnp.issubdtype(y0.dtype, jnp.floating):
-        y0 = y0.astype(jnp.result_type(float))
-    if y0.shape != (d,):
-        raise ValueError(f"y0 has shape {y0.shape}; expected ({d},), the mean of {system.layout.names}.")
+    y0 = system.state(y0)
     cov0 = jnp.zeros((d, d), y0.dtype) if cov0 is None else jnp.asarray(cov0).astype(y0.dtype)
     if cov0.shape != (d, d):
         raise ValueError(f"cov0 has shape {cov0.shape}; expected ({d}, {d}).")
