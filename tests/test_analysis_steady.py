@@ -315,6 +315,9 @@ def test_linear_stability_on_a_damped_oscillator():
         linear_stability(field, jnp.ones(3), jnp.array([2.0, 0.3]), n_family=1)
     with pytest.raises(ValueError, match=r"the 2 smallest eigenvalues .* are not ≈ 0"):
         linear_stability(field, jnp.zeros(3), jnp.array([2.0, 0.3]), n_family=2)
+    # float32 rounding (1e-7) is above the tolerances that tell zero, neutral and growing roots apart
+    with pytest.raises(ValueError, match=r"state has dtype float32; stability analysis needs float64"):
+        linear_stability(field, jnp.zeros(3, jnp.float32), jnp.array([2.0, 0.3], jnp.float32), n_family=1)
 
 
 # ------------------------------------------------------------------ bad input

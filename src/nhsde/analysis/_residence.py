@@ -114,19 +114,20 @@ def _linearise(system, state, names, t, rtol):
             raise ValueError(
                 f"the linearised drift of {names} depends on {system.layout.names[rest[j]]!r} "
                 f"(∂a_{names[i]}/∂{system.layout.names[rest[j]]} = {coupling[i, j]:.3e}): these components are not a "
-                f"closed linear system at this state; include it in the components."
+                f"closed linear system at this state; include it in `components=` (stationary_spread) or choose a component "
+                f"whose linearised row is closed (linear_residence_time)."
             )
     return a, q
 
 
-def _check_hurwitz(a, names):
+def _check_hurwitz(a, names, hint):
     if _concrete(a):
         growth = float(np.max(np.real(np.linalg.eigvals(np.asarray(a)))))
         if not growth < 0:
             raise ValueError(
                 f"the steady state is not asymptotically stable in {names}: the linearised drift has an eigenvalue "
                 f"with real part {growth:.3g} ≥ 0, so there is no stationary spread or finite residence time "
-                f"(exclude neutral components such as cyclic coordinates with `components=`)."
+                f"({hint})."
             )
 
 
@@ -181,7 +182,7 @@ def stationary_spread(system: StochasticSystem, state, *, components=None, t: fl
     state = system.state(state, "state")
     names = _components(system, components)
     a, q = _linearise(system, state, names, t, rtol)
-    _check_hurwitz(a, names)
+    _check_hurwitz(a, names, "exclude neutral components such as cyclic coordinates with `components=`")
     return Spread(cov=_lyapunov(a, q), jacobian=a, noise=q, names=names)
 
 
@@ -250,7 +251,7 @@ def linear_residence_time(
     state = system.state(state, "state")
     radius = _radius(radius)
     (a, q) = _linearise(system, state, (component,), t, rtol)
-    _check_hurwitz(a, (component,))
+    _check_hurwitz(a, (component,), "choose a `component=` whose linearised row is damped")
     mean, kappa, noise, rho = _ou_mode(a, q, radius)
     if _concrete(noise) and not float(noise) > 0:
         raise ValueError(

@@ -22,6 +22,15 @@ from ._liouville import FAST_COMPILE
 
 __all__ = ["Stability", "jacobian", "linear_stability"]
 
+def require_float64(name: str, x) -> None:
+    """Raise unless ``x`` is float64: the tolerances that separate zero, neutral and growing roots need it."""
+    if jnp.asarray(x).dtype != jnp.float64:
+        raise ValueError(
+            f"{name} has dtype {jnp.asarray(x).dtype}; stability analysis needs float64 "
+            "(call jax.config.update('jax_enable_x64', True) before creating arrays)."
+        )
+
+
 def jacobian(field: Callable, state, params, t=0.0) -> Float[Array, "n n"]:
     """``∂f/∂y`` at ``state`` for ``f = field(t, y, params)`` (forward-mode autodiff)."""
     return jax.jacfwd(lambda y: field(t, y, params))(jnp.asarray(state))
@@ -77,10 +86,10 @@ def classify(eigenvalues, n_family: int, rtol: float, scale: float | None = None
             f"{n_family}-parameter family of steady states, or n_family is wrong."
         )
     rest = rest[np.argsort(-rest.real, kind="stable")]
-    growth = float(np.max(rest.real)) if rest.size else -np.inf
+    growth = float(np.max(rest.real))
     if growth > tol:
         verdict = "unstable"
-    elif rest.size and np.all(rest.real < -tol):
+    elif np.all(rest.real < -tol):
         verdict = "asymptotically stable"
     else:
         verdict = "neutral"
@@ -103,6 +112,7 @@ def linear_stability(field: Callable, state, params, *, n_family: int, t=0.0, rt
     are not ≈ 0 (see :func:`classify`).
     """
     state = jnp.asarray(state)
+    require_float64("state", state)
     value, jac = (np.asarray(a) for a in _value_and_jacobian(field, state, params, jnp.asarray(t, state.dtype)))
     if not np.all(np.isfinite(jac)):
         raise ValueError(f"the Jacobian at state={np.asarray(state)} is not finite.")

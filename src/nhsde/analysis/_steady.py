@@ -30,7 +30,7 @@ from jaxtyping import Array, Complex, Float
 from ..mechanics import MechanicalSpec, formulate
 from ..mechanics._forms import ReducedForm
 from ._liouville import FAST_COMPILE
-from ._stability import Stability, classify, linear_stability
+from ._stability import Stability, classify, linear_stability, require_float64
 
 __all__ = [
     "ChaplyginSystem",
@@ -322,6 +322,7 @@ def chaplygin_system(spec: MechanicalSpec, dependent, reference, *, samples: int
     if not isinstance(spec, MechanicalSpec):
         raise TypeError(f"spec={type(spec).__name__}; expected a MechanicalSpec.")
     reference = jnp.asarray(reference, jnp.result_type(float))
+    require_float64("reference", reference)
     if reference.shape != (spec.n,):
         raise ValueError(f"reference has shape {reference.shape}; expected ({spec.n},) for {spec.coordinates}.")
     _check_structure(spec)
