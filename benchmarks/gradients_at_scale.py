@@ -42,8 +42,15 @@ def statistic(steps, paths, checkpoint):
     def k_xx(eps, nu):
         scene = BallOnVibratingPlane(eps=eps, nu=nu)
         ens = nhsde.simulate(
-            scene.build(), scene.initial_state(), jax.random.key(0), n_paths=paths, t1=steps * 0.01, dt=0.01,
-            save=nhsde.Save(names=("x",), n=11), checkpoint=checkpoint, chunk_size=min(paths, 4096),
+            scene.build(),
+            scene.initial_state(),
+            jax.random.key(0),
+            n_paths=paths,
+            t1=steps * 0.01,
+            dt=0.01,
+            save=nhsde.Save(names=("x",), n=11),
+            checkpoint=checkpoint,
+            chunk_size=min(paths, 4096),
         )
         return ens.cov[-1, 0, 0]
 
@@ -70,10 +77,21 @@ def main():
         for mode, fn in modes.items():
             seconds, peak = measure(fn, eps, nu)
             base = base or (seconds, peak)
-            rows.append(dict(steps=steps, paths=paths, mode=mode, seconds=seconds, peak_bytes=peak,
-                             time_ratio=seconds / base[0], memory_ratio=peak / base[1]))
-            print(f"{steps:>6}{paths:>7}  {mode:<28}{seconds:>9.3f}{seconds / base[0]:>7.2f}"
-                  f"{peak / 2**20:>9.1f}{peak / base[1]:>7.1f}")
+            rows.append(
+                dict(
+                    steps=steps,
+                    paths=paths,
+                    mode=mode,
+                    seconds=seconds,
+                    peak_bytes=peak,
+                    time_ratio=seconds / base[0],
+                    memory_ratio=peak / base[1],
+                )
+            )
+            print(
+                f"{steps:>6}{paths:>7}  {mode:<28}{seconds:>9.3f}{seconds / base[0]:>7.2f}"
+                f"{peak / 2**20:>9.1f}{peak / base[1]:>7.1f}"
+            )
     OUT.mkdir(exist_ok=True)
     (OUT / "gradients_at_scale.json").write_text(json.dumps(rows, indent=1))
 

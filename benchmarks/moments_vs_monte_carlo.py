@@ -54,8 +54,9 @@ NAMES = ("x", "y")
 def moment_method(order, dt):
     def f(eps, nu):
         scene = ChaplyginSleigh(eps=eps, nu=nu)
-        ens = normal_approximation(scene.build(), scene.initial_state().astype(jnp.float64), t1=T1, dt=dt,
-                                   save=nhsde.Save(n=2), order=order)
+        ens = normal_approximation(
+            scene.build(), scene.initial_state().astype(jnp.float64), t1=T1, dt=dt, save=nhsde.Save(n=2), order=order
+        )
         stats = drift_statistics(ens)
         return stats.systematic[-1], stats.fluctuation[-1]
 
@@ -65,8 +66,16 @@ def moment_method(order, dt):
 def monte_carlo(n_paths):
     def f(eps, nu):
         scene = ChaplyginSleigh(eps=eps, nu=nu)
-        ens = nhsde.simulate(scene.build(), scene.initial_state().astype(jnp.float64), jax.random.key(0),
-                             n_paths=n_paths, t1=T1, dt=0.005, solver="sra1", save=nhsde.Save(n=2))
+        ens = nhsde.simulate(
+            scene.build(),
+            scene.initial_state().astype(jnp.float64),
+            jax.random.key(0),
+            n_paths=n_paths,
+            t1=T1,
+            dt=0.005,
+            solver="sra1",
+            save=nhsde.Save(n=2),
+        )
         stats = drift_statistics(ens)
         return stats.systematic[-1], stats.fluctuation[-1], stats.systematic_se[-1], stats.fluctuation_se[-1]
 
@@ -108,8 +117,12 @@ def main():
         row = {
             "nu": nu,
             "moments": {"m": m.tolist(), "K": [k[i, j] for i, j in iu]},
-            "monte_carlo": {"m": m_mc.tolist(), "m_se": m_se.tolist(), "K": [k_mc[i, j] for i, j in iu],
-                            "K_se": [k_se[i, j] for i, j in iu]},
+            "monte_carlo": {
+                "m": m_mc.tolist(),
+                "m_se": m_se.tolist(),
+                "K": [k_mc[i, j] for i, j in iu],
+                "K_se": [k_se[i, j] for i, j in iu],
+            },
             "error_in_se": {
                 "m": (np.abs(m - m_mc) / m_se).tolist(),
                 "K": [abs(k[i, j] - k_mc[i, j]) / k_se[i, j] for i, j in iu],
@@ -119,8 +132,9 @@ def main():
                 "K_xx": abs(k[0, 0] - k_mc[0, 0]) / k_mc[0, 0],
                 "K_yy": abs(k[1, 1] - k_mc[1, 1]) / k_mc[1, 1],
             },
-            "discretisation_error": float(max(np.max(np.abs(m - np.asarray(m_fine))),
-                                                     np.max(np.abs(k - np.asarray(k_fine))))),
+            "discretisation_error": float(
+                max(np.max(np.abs(m - np.asarray(m_fine))), np.max(np.abs(k - np.asarray(k_fine))))
+            ),
             "seconds": {"moments": min(t_nam), "monte_carlo": min(t_mc)},
             "speedup": min(t_mc) / min(t_nam),
         }
@@ -135,14 +149,22 @@ def main():
         "scene": "ChaplyginSleigh(eps=0.1, mass=1, inertia=1, offset=1), y0 = (0, 0, 0, 1, 0)",
         "t1": T1,
         "monte_carlo": {"n_paths": n_paths, "solver": "sra1", "dt": 0.005, "dtype": "float64"},
-        "moments": {"order": 5, "dt": 0.02, "integrator": "Dopri8 (fixed steps)", "dtype": "float64",
-                    "discretisation_error": "max |difference| of m, K from order 9, dt = 0.01"},
+        "moments": {
+            "order": 5,
+            "dt": 0.02,
+            "integrator": "Dopri8 (fixed steps)",
+            "dtype": "float64",
+            "discretisation_error": "max |difference| of m, K from order 9, dt = 0.01",
+        },
         "compile_seconds": {"moments": compile_nam, "monte_carlo": compile_mc},
         "repeats": args.repeats,
         "rows": rows,
         "machine": {
-            "cpu_count": os.cpu_count(), "platform": platform.platform(), "jax": jax.__version__,
-            "load_average_before": load_before, "load_average_after": os.getloadavg(),
+            "cpu_count": os.cpu_count(),
+            "platform": platform.platform(),
+            "jax": jax.__version__,
+            "load_average_before": load_before,
+            "load_average_after": os.getloadavg(),
         },
     }
     path = Path(__file__).resolve().parent / "results" / "moments_vs_monte_carlo.json"

@@ -49,8 +49,9 @@ def main():
     parser.add_argument("--devices", type=int, default=8)
     args = parser.parse_args()
     env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={args.devices}", JAX_PLATFORMS="cpu")
-    out = subprocess.run([sys.executable, "-c", CHILD, str(args.paths)], env=env, capture_output=True, text=True,
-                         check=True)
+    out = subprocess.run(
+        [sys.executable, "-c", CHILD, str(args.paths)], env=env, capture_output=True, text=True, check=True
+    )
     rows = json.loads(out.stdout.strip().splitlines()[-1])
     base = rows[0]["seconds"]
     print(f"{args.paths} paths x 1000 steps, {os.cpu_count()} cores")
@@ -58,8 +59,10 @@ def main():
     for r in rows:
         r["speedup"] = base / r["seconds"]
         r["efficiency"] = r["speedup"] / r["devices"]
-        print(f"{r['devices']:>8}{r['seconds']:>10.3f}{r['speedup']:>10.2f}{r['efficiency']:>12.2f}  "
-              f"{r['bitwise_equal_to_one_device']}")
+        print(
+            f"{r['devices']:>8}{r['seconds']:>10.3f}{r['speedup']:>10.2f}{r['efficiency']:>12.2f}  "
+            f"{r['bitwise_equal_to_one_device']}"
+        )
     OUT.mkdir(exist_ok=True)
     (OUT / "sharding.json").write_text(json.dumps(dict(paths=args.paths, cores=os.cpu_count(), rows=rows), indent=1))
 

@@ -457,7 +457,9 @@ def make_cases(scene, args):
     g = scan_stat(scene, n, steps)
     add("(a) lax.scan", "forward", n, (lambda h: lambda: h(theta, key_a))(jax.jit(g)))
     add(
-        "(a) lax.scan", "value_and_grad", n,
+        "(a) lax.scan",
+        "value_and_grad",
+        n,
         (lambda h: lambda: h(theta, key_a))(jax.jit(jax.value_and_grad(g, has_aux=True))),
         ("(a) lax.scan", "forward"),
     )
@@ -470,7 +472,9 @@ def make_cases(scene, args):
         c = diffrax_stat(scene, nc, steps)
         add("(c) diffrax", "forward", nc, (lambda h: lambda: h(theta, key_c))(jax.jit(c)))
         add(
-            "(c) diffrax", "value_and_grad", nc,
+            "(c) diffrax",
+            "value_and_grad",
+            nc,
             (lambda h: lambda: h(theta, key_c))(jax.jit(jax.value_and_grad(c, has_aux=True))),
             ("(c) diffrax", "forward"),
         )
@@ -590,8 +594,10 @@ def main(argv=None):
             exact = {"value": float(kxx(th64)), "grad": [float(x) for x in jax.grad(kxx)(jnp.asarray(th64))]}
         print(f"\n[{scene}] sanity: K_xx(t1) = Var x(t1)  (± one Monte-Carlo standard error)")
         if exact:
-            print(f"  exact (continuous SDE)         {exact['value']:.5f}   d/d(eps, nu) = "
-                  f"({exact['grad'][0]:+.4f}, {exact['grad'][1]:+.4f})")
+            print(
+                f"  exact (continuous SDE)         {exact['value']:.5f}   d/d(eps, nu) = "
+                f"({exact['grad'][0]:+.4f}, {exact['grad'][1]:+.4f})"
+            )
         san = {"exact": exact, "rows": []}
         for c in cases:
             v, se, grad = value_se_grad(c)
@@ -603,15 +609,20 @@ def main(argv=None):
             if c.impl.startswith("(c)") and isinstance(c.out, tuple):
                 aux = c.out[1] if c.mode == "forward" else c.out[0][1]
                 extra = f"   [diffrax steps taken: {int(aux[1])}]"
-            print(f"  {c.impl:24s} {c.mode:15s} {v:.5f} ± {se:.5f}  z={z:+5.2f} {'ok' if ok else 'MISMATCH'}{gtxt}{extra}")
-            san["rows"].append(dict(impl=c.impl, mode=c.mode, paths=c.n_paths, value=v, se=se, z_vs_nhsde=z,
-                                    consistent=ok, grad=grad))
+            print(
+                f"  {c.impl:24s} {c.mode:15s} {v:.5f} ± {se:.5f}  z={z:+5.2f} {'ok' if ok else 'MISMATCH'}{gtxt}{extra}"
+            )
+            san["rows"].append(
+                dict(impl=c.impl, mode=c.mode, paths=c.n_paths, value=v, se=se, z_vs_nhsde=z, consistent=ok, grad=grad)
+            )
         sanity[scene] = san
 
         # ---- table
         print(f"\n[{scene}] throughput ({args.steps} steps; traj-steps/s = paths x steps / best time)")
-        hdr = (f"  {'implementation':24s} {'mode':15s} {'paths':>6s} {'best s':>9s} {'median s':>9s} "
-               f"{'traj-steps/s':>14s} {'time vs nhsde fwd':>18s} {'grad / own fwd':>15s}")
+        hdr = (
+            f"  {'implementation':24s} {'mode':15s} {'paths':>6s} {'best s':>9s} {'median s':>9s} "
+            f"{'traj-steps/s':>14s} {'time vs nhsde fwd':>18s} {'grad / own fwd':>15s}"
+        )
         print(hdr)
         print("  " + "-" * (len(hdr) - 2))
         for c in cases:
@@ -620,15 +631,25 @@ def main(argv=None):
             own = by[c.forward_of] if c.forward_of else None
             grad_ratio = (own.throughput / c.throughput) if own else None
             row = dict(
-                scene=scene, impl=c.impl, mode=c.mode, paths=c.n_paths, steps=c.steps,
-                best_s=c.best, median_s=pystats.median(c.times), times_s=c.times, first_call_s=c.compile_s,
-                traj_steps_per_s=c.throughput, time_per_traj_step_vs_nhsde_forward=per_fwd,
+                scene=scene,
+                impl=c.impl,
+                mode=c.mode,
+                paths=c.n_paths,
+                steps=c.steps,
+                best_s=c.best,
+                median_s=pystats.median(c.times),
+                times_s=c.times,
+                first_call_s=c.compile_s,
+                traj_steps_per_s=c.throughput,
+                time_per_traj_step_vs_nhsde_forward=per_fwd,
                 grad_time_over_own_forward=grad_ratio,
             )
             all_rows.append(row)
-            print(f"  {c.impl:24s} {c.mode:15s} {c.n_paths:6d} {c.best:9.4f} {row['median_s']:9.4f} "
-                  f"{fmt_rate(c.throughput):>14s} {per_fwd:18.2f} "
-                  f"{'' if grad_ratio is None else f'{grad_ratio:.2f}':>15s}")
+            print(
+                f"  {c.impl:24s} {c.mode:15s} {c.n_paths:6d} {c.best:9.4f} {row['median_s']:9.4f} "
+                f"{fmt_rate(c.throughput):>14s} {per_fwd:18.2f} "
+                f"{'' if grad_ratio is None else f'{grad_ratio:.2f}':>15s}"
+            )
 
         # ---- targets
         t = {}
@@ -660,8 +681,15 @@ def main(argv=None):
 
     out = {
         "machine": info,
-        "config": {"dtype": "float32", "dt": DT, "paths": args.paths, "steps": args.steps,
-                   "repeats": args.repeats, "c_paths": args.c_paths, "quick": args.quick},
+        "config": {
+            "dtype": "float32",
+            "dt": DT,
+            "paths": args.paths,
+            "steps": args.steps,
+            "repeats": args.repeats,
+            "c_paths": args.c_paths,
+            "quick": args.quick,
+        },
         "rows": all_rows,
         "sanity": sanity,
         "targets": targets,

@@ -53,9 +53,14 @@ def ball_case():
     t1 = 2.0
     reference = float(ball_covariances(jnp.float64(t1), 1.0, 1.0, 1 / 1.4)[0])
     return dict(
-        name="ball", system=scene.build(), y0=scene.initial_state().astype(jnp.float64), t1=t1,
-        statistic=lambda ens: (ens.cov[-1, 0, 0], ens.cov_se[-1, 0, 0]), reference=reference,
-        save=nhsde.Save(names=("x",), n=2), label="k_xx(t1)",
+        name="ball",
+        system=scene.build(),
+        y0=scene.initial_state().astype(jnp.float64),
+        t1=t1,
+        statistic=lambda ens: (ens.cov[-1, 0, 0], ens.cov_se[-1, 0, 0]),
+        reference=reference,
+        save=nhsde.Save(names=("x",), n=2),
+        label="k_xx(t1)",
         solvers=["euler", "milstein", "heun", "heun2", "sra1", "exponential"],
     )
 
@@ -68,9 +73,14 @@ def sleigh_case():
     h0 = 0.5 * (1.0 + j * 0.25)
     reference = h0 * np.exp(-4 * eps * t1) + nu * (1 - np.exp(-4 * eps * t1)) / (4 * eps)
     return dict(
-        name="sleigh", system=scene.build(), y0=y0, t1=t1,
-        statistic=lambda ens: (ens.mean[-1, 0], ens.mean_se[-1, 0]), reference=float(reference),
-        save=nhsde.Save(names=("energy",), n=2), label="E[H](t1)",
+        name="sleigh",
+        system=scene.build(),
+        y0=y0,
+        t1=t1,
+        statistic=lambda ens: (ens.mean[-1, 0], ens.mean_se[-1, 0]),
+        reference=float(reference),
+        save=nhsde.Save(names=("energy",), n=2),
+        label="E[H](t1)",
         solvers=["euler", "milstein", "heun", "heun2", "sra1", "exponential"],
     )
 
@@ -89,9 +99,15 @@ def chaplygin_ball_case():
     eps, nu, t1 = 1.0, 2.0, 4.0
     scene = ChaplyginBall(eps=eps, nu=nu)
     return dict(
-        name="chaplygin-ball", system=scene.build(), y0=scene.initial_state().astype(jnp.float64), t1=t1,
-        statistic=lambda ens: (ens.mean[-1, 0], ens.mean_se[-1, 0]), reference=3 * nu / (8 * eps),
-        save=nhsde.Save(names=("energy",), n=2), label="E[H](t1)", solvers=["euler", "heun", "heun2", "sra1"],
+        name="chaplygin-ball",
+        system=scene.build(),
+        y0=scene.initial_state().astype(jnp.float64),
+        t1=t1,
+        statistic=lambda ens: (ens.mean[-1, 0], ens.mean_se[-1, 0]),
+        reference=3 * nu / (8 * eps),
+        save=nhsde.Save(names=("energy",), n=2),
+        label="E[H](t1)",
+        solvers=["euler", "heun", "heun2", "sra1"],
     )
 
 
@@ -100,9 +116,18 @@ CASES = {"ball": ball_case, "sleigh": sleigh_case, "chaplygin-ball": chaplygin_b
 
 def step_costs(case, dt, n_paths, rounds):
     """Best-of-``rounds`` wall time of each solver at one step, run interleaved (a load spike hits all alike)."""
+
     def run(solver):
-        return nhsde.simulate(case["system"], case["y0"], jax.random.key(0), n_paths=n_paths, t1=case["t1"], dt=dt,
-                              solver=solver, save=case["save"])
+        return nhsde.simulate(
+            case["system"],
+            case["y0"],
+            jax.random.key(0),
+            n_paths=n_paths,
+            t1=case["t1"],
+            dt=dt,
+            solver=solver,
+            save=case["save"],
+        )
 
     for solver in case["solvers"]:
         jax.block_until_ready(run(solver))  # compile
@@ -157,35 +182,56 @@ def main():
     all_rows, costs = [], {}
     for case in (CASES[name]() for name in names):
         rows = work_precision(
-            case["system"], case["y0"], jax.random.key(0), t1=case["t1"], solvers=case["solvers"], dts=dts,
-            statistic=case["statistic"], reference=case["reference"], n_paths=n_paths, save=case["save"],
+            case["system"],
+            case["y0"],
+            jax.random.key(0),
+            t1=case["t1"],
+            solvers=case["solvers"],
+            dts=dts,
+            statistic=case["statistic"],
+            reference=case["reference"],
+            n_paths=n_paths,
+            save=case["save"],
         )
         measured = {(r.solver, r.dt): r.seconds for r in rows}
         if args.cost_rounds > 0:
             cost_dt = 2.0**-6
             best = step_costs(case, cost_dt, n_paths, args.cost_rounds)
-            costs[case["name"]] = dict(dt=cost_dt, n_paths=n_paths, rounds=args.cost_rounds, best_seconds=best,
-                                       relative_to_euler={s: t / best["euler"] for s, t in best.items()},
-                                       loadavg=os.getloadavg())
+            costs[case["name"]] = dict(
+                dt=cost_dt,
+                n_paths=n_paths,
+                rounds=args.cost_rounds,
+                best_seconds=best,
+                relative_to_euler={s: t / best["euler"] for s, t in best.items()},
+                loadavg=os.getloadavg(),
+            )
             rows = [dataclasses.replace(r, seconds=best[r.solver] * cost_dt / r.dt) for r in rows]
         plot(case, rows, OUT / f"work_precision_{case['name']}.png", modelled=args.cost_rounds > 0)
         print(f"\n[{case['name']}] {case['label']} exact = {case['reference']:.6g}, {n_paths} paths")
         if args.cost_rounds > 0:
-            print(f"  per-step cost at dt={cost_dt:g} (best of {args.cost_rounds}, interleaved), relative to euler: "
-                  + ", ".join(f"{s} {t / best['euler']:.2f}" for s, t in best.items()))
-        print(f"{'solver':<12}{'dt':>10}{'strong':>12}{'weak':>12}{'MC se':>10}{'measured s':>11}{'cost s':>9}"
-              f"{'peak MB':>9}")
+            print(
+                f"  per-step cost at dt={cost_dt:g} (best of {args.cost_rounds}, interleaved), relative to euler: "
+                + ", ".join(f"{s} {t / best['euler']:.2f}" for s, t in best.items())
+            )
+        print(
+            f"{'solver':<12}{'dt':>10}{'strong':>12}{'weak':>12}{'MC se':>10}{'measured s':>11}{'cost s':>9}"
+            f"{'peak MB':>9}"
+        )
         for r in rows:
             once = measured[(r.solver, r.dt)]
-            print(f"{r.solver:<12}{r.dt:>10.4g}{r.strong_error:>12.3g}{r.weak_error:>12.3g}{r.weak_se:>10.2g}"
-                  f"{once:>11.3f}{r.seconds:>9.3f}{r.peak_bytes / 2**20:>9.1f}")
+            print(
+                f"{r.solver:<12}{r.dt:>10.4g}{r.strong_error:>12.3g}{r.weak_error:>12.3g}{r.weak_se:>10.2g}"
+                f"{once:>11.3f}{r.seconds:>9.3f}{r.peak_bytes / 2**20:>9.1f}"
+            )
             all_rows.append(dict(scene=case["name"], **dataclasses.asdict(r), measured_seconds=once))
         for tol in (1e-1, 1e-2, 1e-3):
             for kind in ("strong", "weak"):
                 try:
                     r = cheapest_setting(rows, tol * (abs(case["reference"]) if kind == "weak" else 1.0), kind=kind)
-                    print(f"  cheapest for {kind} error ≤ {tol:g}{' (relative)' if kind == 'weak' else ''}: "
-                          f"{r.solver} dt={r.dt:g} ({r.seconds:.3f} s)")
+                    print(
+                        f"  cheapest for {kind} error ≤ {tol:g}{' (relative)' if kind == 'weak' else ''}: "
+                        f"{r.solver} dt={r.dt:g} ({r.seconds:.3f} s)"
+                    )
                 except ValueError as e:
                     print(f"  {kind} ≤ {tol:g}: {e}")
     path = OUT / "work_precision.csv"

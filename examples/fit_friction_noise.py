@@ -26,15 +26,25 @@ jax.config.update("jax_enable_x64", True)
 def report(title, result, truth):
     print(f"\n{title}\n{result}")
     z = (result.values - np.asarray(truth)) / result.se
-    print("truth:", ", ".join(f"{n}={t}" for n, t in zip(result.names, truth)),
-          "| (estimate − truth)/SE:", np.array2string(z, precision=2))
+    print(
+        "truth:",
+        ", ".join(f"{n}={t}" for n, t in zip(result.names, truth)),
+        "| (estimate − truth)/SE:",
+        np.array2string(z, precision=2),
+    )
 
 
 def ball():
     eps, nu, names = 0.8, 1.5, ("x", "u_x")
     truth = BallOnVibratingPlane(eps=eps, nu=nu).build()
     data = nhsde.simulate(
-        truth, jnp.zeros(4), jax.random.key(1), n_paths=2048, t1=4.0, dt=0.02, solver="sra1",
+        truth,
+        jnp.zeros(4),
+        jax.random.key(1),
+        n_paths=2048,
+        t1=4.0,
+        dt=0.02,
+        solver="sra1",
         save=nhsde.Save(names=names, n=9, paths=True),
     )
     observed = fit.Observations.from_paths(data.ts[1:], data.paths[:, 1:], names)  # t = 0 is not random

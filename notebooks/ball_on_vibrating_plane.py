@@ -97,7 +97,9 @@ def z_score(mc, se, exact):
         return np.where(se > 0, (mc - exact) / se, np.nan)
 
 
-print(f"nhsde {nhsde.__version__}, jax {jax.__version__} on {jax.devices()[0].platform}; figures -> {plot.figure_dir()}")
+print(
+    f"nhsde {nhsde.__version__}, jax {jax.__version__} on {jax.devices()[0].platform}; figures -> {plot.figure_dir()}"
+)
 
 # %% [markdown]
 # ## Parameters
@@ -168,10 +170,7 @@ se_gauss = {
     "uu": np.sqrt(2 * closed["uu"] ** 2 / N_PATHS),
 }
 
-print(
-    f"\n{'t':>5} {'k':>5} {'Monte Carlo':>12} {'± SE':>9} {'closed form':>12} {'(MC-CF)/SE':>11} "
-    f"{'SE/SE_gauss':>12}"
-)
+print(f"\n{'t':>5} {'k':>5} {'Monte Carlo':>12} {'± SE':>9} {'closed form':>12} {'(MC-CF)/SE':>11} {'SE/SE_gauss':>12}")
 for n in range(5, len(ts), 5):
     for k in pairs:
         print(
@@ -180,7 +179,9 @@ for n in range(5, len(ts), 5):
         )
 for k in pairs:
     zk = z[k][1:]
-    print(f"k_{k}: max |z| over {zk.size} save times = {np.nanmax(np.abs(zk)):.2f}, rms z = {np.sqrt(np.nanmean(zk**2)):.2f}")
+    print(
+        f"k_{k}: max |z| over {zk.size} save times = {np.nanmax(np.abs(zk)):.2f}, rms z = {np.sqrt(np.nanmean(zk**2)):.2f}"
+    )
 
 # isotropy / independence of the two axes
 k_yy, k_xy = np.asarray(ens.cov[-1, iy, iy]), np.asarray(ens.cov[-1, ix, iy])
@@ -321,23 +322,21 @@ for eps in EPS_GRID:
     rows.append((eps, *mean_se(k), *mean_se(d_eps), *mean_se(d_nu)))
 rows = np.array(rows)
 print(
-    f"{len(EPS_GRID)} gradients x {N_BATCH * BATCH_PATHS} paths in {time.perf_counter() - t0:.1f} s "
-    "(incl. compilation)"
+    f"{len(EPS_GRID)} gradients x {N_BATCH * BATCH_PATHS} paths in {time.perf_counter() - t0:.1f} s (incl. compilation)"
 )
 ex_deps, ex_dnu = (np.asarray(a) for a in closed_grad(jnp.asarray(EPS_GRID), NU_G))
 ex_k = np.asarray(jax.vmap(kxx_closed, in_axes=(0, None))(jnp.asarray(EPS_GRID), NU_G))
 
 print(f"\nat t1 = {T1}, nu = {NU_G}:")
-print(f"{'eps':>6} | {'dk/deps MC':>11} {'± SE':>8} {'exact':>11} {'z':>6} | {'dk/dnu MC':>10} {'± SE':>8} {'exact':>10} {'z':>6}")
+print(
+    f"{'eps':>6} | {'dk/deps MC':>11} {'± SE':>8} {'exact':>11} {'z':>6} | {'dk/dnu MC':>10} {'± SE':>8} {'exact':>10} {'z':>6}"
+)
 for (eps, k, k_se, de, de_se, dn, dn_se), e_de, e_dn in zip(rows, ex_deps, ex_dnu):
     print(
         f"{eps:6.3f} | {de:11.5f} {de_se:8.5f} {e_de:11.5f} {z_score(de, de_se, e_de):+6.2f} | "
         f"{dn:10.5f} {dn_se:8.5f} {e_dn:10.5f} {z_score(dn, dn_se, e_dn):+6.2f}"
     )
-print(
-    "k_xx itself: z = "
-    + ", ".join(f"{z_score(r[1], r[2], e):+.2f}" for r, e in zip(rows, ex_k))
-)
+print("k_xx itself: z = " + ", ".join(f"{z_score(r[1], r[2], e):+.2f}" for r, e in zip(rows, ex_k)))
 
 # %% [markdown]
 # Left: $-\partial k_{xx}/\partial\varepsilon$, right: $\partial k_{xx}/\partial\nu$,
@@ -363,9 +362,7 @@ for col, (title, sign, curve, approx, mc_g, mc_se, exact) in enumerate(panels):
     ax = axes[0, col]
     ax.plot(eps_f, sign * curve, "C0-", label="jax.grad of closed form")
     ax.plot(eps_f, sign * approx, "k:", lw=1, label="large-$t$ approximation")
-    ax.errorbar(
-        EPS_GRID, sign * mc_g, yerr=2 * mc_se, fmt="C1o", ms=5, capsize=3, label="jax.grad through simulate"
-    )
+    ax.errorbar(EPS_GRID, sign * mc_g, yerr=2 * mc_se, fmt="C1o", ms=5, capsize=3, label="jax.grad through simulate")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_title(title)
@@ -438,8 +435,13 @@ print(f"  KS distance {ks:.4f}  (5% critical value ~ {1.36 / np.sqrt(N_HIST):.4f
 fig, ax = plt.subplots(figsize=(6.5, 4))
 ax.hist(u, bins=60, density=True, color="C1", alpha=0.6, label=f"$u_x(t_1)$, {N_HIST} paths")
 grid_u = np.linspace(-4.5, 4.5, 400) * np.sqrt(k_uu_t1)
-ax.plot(grid_u, np.exp(-(grid_u**2) / (2 * k_uu_t1)) / np.sqrt(2 * np.pi * k_uu_t1), "C0-", lw=2,
-        label=rf"$\mathcal{{N}}(0,\,k_{{uu}}(t_1) = {k_uu_t1:.4f})$")
+ax.plot(
+    grid_u,
+    np.exp(-(grid_u**2) / (2 * k_uu_t1)) / np.sqrt(2 * np.pi * k_uu_t1),
+    "C0-",
+    lw=2,
+    label=rf"$\mathcal{{N}}(0,\,k_{{uu}}(t_1) = {k_uu_t1:.4f})$",
+)
 ax.set_xlabel(r"$u_x$")
 ax.set_ylabel("density")
 ax.set_title(rf"Velocity at $t_1 = {T1}$ ($\varepsilon={EPS}$, $\nu={NU}$)")

@@ -49,9 +49,17 @@ THETA = np.linspace(0.0, np.pi, 400)
 
 def nutation_samples(scene, y0, key, t1=40.0, burn_in=20.0):
     """θ at t = burn_in, burn_in + 2, …, t1 for every path (Heun, dt = 0.01)."""
-    ens = nhsde.simulate(scene.build(), y0, jax.random.key(key), n_paths=y0.shape[0], t1=t1, dt=0.01, solver="heun",
-                         save=nhsde.Save(names=("theta",), n=int(t1 / 2) + 1, paths=True))
-    return np.asarray(ens.paths[:, int(burn_in / 2):, 0])
+    ens = nhsde.simulate(
+        scene.build(),
+        y0,
+        jax.random.key(key),
+        n_paths=y0.shape[0],
+        t1=t1,
+        dt=0.01,
+        solver="heun",
+        save=nhsde.Save(names=("theta",), n=int(t1 / 2) + 1, paths=True),
+    )
+    return np.asarray(ens.paths[:, int(burn_in / 2) :, 0])
 
 
 def histogram(ax, theta, label, **kw):
@@ -97,10 +105,14 @@ routh = B.RigidBody(mass=1.0, inertia=(0.4, 0.4, 0.3), surface=B.Sphere(radius=1
 scene = BodyOnVibratingPlane(body=routh, eps=1.0, nu=2.0, gravity=1.0)
 fig, ax = plt.subplots(figsize=(6, 4.2))
 ax.plot(THETA, np.asarray(stationary_nutation_density(scene.params, THETA)), "k-", label="S0 Statement 2")
-histogram(ax, nutation_samples(scene, sample_stationary(scene.params, jax.random.key(4), 1024), key=5),
-          "from the stationary law")
-histogram(ax, nutation_samples(scene, jnp.broadcast_to(scene.initial_state(), (1024, 6)), key=6),
-          "from rest: J = 0 forever")
+histogram(
+    ax,
+    nutation_samples(scene, sample_stationary(scene.params, jax.random.key(4), 1024), key=5),
+    "from the stationary law",
+)
+histogram(
+    ax, nutation_samples(scene, jnp.broadcast_to(scene.initial_state(), (1024, 6)), key=6), "from rest: J = 0 forever"
+)
 ax.set_title("Routh's sphere (R = 1, centre of mass 0.3 below the centre)")
 ax.set_xlabel("nutation angle θ")
 ax.set_ylabel("density")

@@ -38,8 +38,7 @@ import jax
 import jax.numpy as jnp
 import matplotlib.pyplot as plt
 
-from nhsde import mechanics as mech
-from nhsde import plot
+from nhsde import mechanics as mech, plot
 from nhsde.scenes import BeadOnRotatingRod, BeghinPlate
 
 jax.config.update("jax_enable_x64", True)
@@ -54,8 +53,15 @@ def solve(form, y0, ts, extra=None):
         return jnp.concatenate([form.drift(t, y, p), extra(t, y)[None]])
 
     sol = dfx.diffeqsolve(
-        dfx.ODETerm(field), dfx.Tsit5(), ts[0], ts[-1], 1e-3, jnp.concatenate([y0, jnp.zeros(1)]),
-        saveat=dfx.SaveAt(ts=ts), stepsize_controller=dfx.PIDController(rtol=1e-10, atol=1e-10), max_steps=100_000,
+        dfx.ODETerm(field),
+        dfx.Tsit5(),
+        ts[0],
+        ts[-1],
+        1e-3,
+        jnp.concatenate([y0, jnp.zeros(1)]),
+        saveat=dfx.SaveAt(ts=ts),
+        stepsize_controller=dfx.PIDController(rtol=1e-10, atol=1e-10),
+        max_steps=100_000,
     )
     return sol.ys[:, :-1], sol.ys[:, -1]
 
@@ -93,8 +99,10 @@ lam = jax.jit(jax.vmap(lambda q, v, t: by_multipliers.multipliers(q, v, t=t)))(q
 acc_gauss = jax.jit(jax.vmap(lambda q, v, t: by_gauss.accelerations(q, v, t=t)))(q, v, ts)
 normal = jnp.stack([-jnp.sin(p.control(ts)), jnp.cos(p.control(ts))], 1)
 lam_gauss = p.mass * jnp.sum(acc_gauss * normal, 1)
-print(f"max |ΔT − W| = {float(jnp.max(jnp.abs(energy - energy[0] - work))):.2e};  "
-      f"max |λ(multipliers) − λ(Gauss)| = {float(jnp.max(jnp.abs(lam - lam_gauss))):.2e}")
+print(
+    f"max |ΔT − W| = {float(jnp.max(jnp.abs(energy - energy[0] - work))):.2e};  "
+    f"max |λ(multipliers) − λ(Gauss)| = {float(jnp.max(jnp.abs(lam - lam_gauss))):.2e}"
+)
 
 fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
 ax[0].plot(ts, energy - energy[0], lw=3, alpha=0.4, label="$T(t) - T(0)$")
@@ -174,17 +182,33 @@ for realisation in ("servo", "contact"):
 def printed(beta_ddot):
     """Integrate a printed equation β̈ = g(β, β̇) from the same start."""
     sol = dfx.diffeqsolve(
-        dfx.ODETerm(lambda t, y, a: jnp.stack([y[1], beta_ddot(y[0], y[1])])), dfx.Tsit5(), 0.0, 12.0, 1e-3,
-        jnp.array([0.3, 0.5]), saveat=dfx.SaveAt(ts=ts), stepsize_controller=dfx.PIDController(rtol=1e-10, atol=1e-10),
+        dfx.ODETerm(lambda t, y, a: jnp.stack([y[1], beta_ddot(y[0], y[1])])),
+        dfx.Tsit5(),
+        0.0,
+        12.0,
+        1e-3,
+        jnp.array([0.3, 0.5]),
+        saveat=dfx.SaveAt(ts=ts),
+        stepsize_controller=dfx.PIDController(rtol=1e-10, atol=1e-10),
     )
     return sol.ys[:, 0]
 
 
-m_, k_, b_, r_, f_, a_, i1 = bp.plate_mass, bp.gyration, bp.hinge_offset, bp.disk_radius, bp.force, bp.arm, bp.disk_inertia
+m_, k_, b_, r_, f_, a_, i1 = (
+    bp.plate_mass,
+    bp.gyration,
+    bp.hinge_offset,
+    bp.disk_radius,
+    bp.force,
+    bp.arm,
+    bp.disk_inertia,
+)
 beta_34 = printed(lambda b, w: (m_ * r_ * b_ * w**2 - f_ * a_ * jnp.sin(b)) / (m_ * (b_**2 + k_**2)))
 beta_35 = printed(lambda b, w: -f_ * (a_ * jnp.sin(b) + r_ * jnp.cos(b)) / (m_ * (r_**2 + b_**2 + k_**2) + i1))
-print(f"servo vs (3.4): {float(jnp.max(jnp.abs(runs['servo'][0] - beta_34))):.1e};  "
-      f"contact vs (3.5): {float(jnp.max(jnp.abs(runs['contact'][0] - beta_35))):.1e}")
+print(
+    f"servo vs (3.4): {float(jnp.max(jnp.abs(runs['servo'][0] - beta_34))):.1e};  "
+    f"contact vs (3.5): {float(jnp.max(jnp.abs(runs['contact'][0] - beta_35))):.1e}"
+)
 
 fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
 ax[0].plot(ts, runs["servo"][0], lw=3, alpha=0.4, label="servo-constraint (library)")

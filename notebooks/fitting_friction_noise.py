@@ -103,7 +103,13 @@ DELTA = float(BallOnVibratingPlane().params.delta)
 
 ball_true = BallOnVibratingPlane(eps=EPS, nu=NU).build()
 data = nhsde.simulate(
-    ball_true, jnp.zeros(4), jax.random.key(1), n_paths=N_OBS, t1=4.0, dt=0.02, solver="sra1",
+    ball_true,
+    jnp.zeros(4),
+    jax.random.key(1),
+    n_paths=N_OBS,
+    t1=4.0,
+    dt=0.02,
+    solver="sra1",
     save=nhsde.Save(names=NAMES, n=9, paths=True),
 )
 observed = fit.Observations.from_paths(data.ts[1:], data.paths[:, 1:], NAMES)
@@ -136,8 +142,10 @@ for label, model in [
     print(f"\n--- {label} ({time.perf_counter() - t0:.1f} s incl. compilation)\n{fits[label]}")
     print(f"(estimate − truth)/SE = {np.array2string(z_scores(fits[label], (EPS, NU)), precision=2)}")
 ratio = fits["simulator"].se / fits["closed form"].se
-print(f"\nSE(simulator)/SE(closed form) = {np.array2string(ratio, precision=3)}; "
-      f"expected about sqrt(1 + n_obs/n_sim) = {np.sqrt(1 + N_OBS / 4096):.3f}")
+print(
+    f"\nSE(simulator)/SE(closed form) = {np.array2string(ratio, precision=3)}; "
+    f"expected about sqrt(1 + n_obs/n_sim) = {np.sqrt(1 + N_OBS / 4096):.3f}"
+)
 
 # %% [markdown]
 # **Figure 1.** The observed covariances (markers, ±2 SE bands) with the closed
@@ -154,9 +162,16 @@ se_cov = np.sqrt(np.diag(observed.covariance)).reshape(len(ts_obs), -1)[:, 2:]  
 fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
 for col, (label, (i, j)) in enumerate({"k_xx": (0, 0), "k_xu": (0, 1), "k_uu": (1, 1)}.items()):
     ax = axes[col]
-    plot.band(ax, ts_obs, observed.cov[:, i, j], se_cov[:, col], label=f"data, {N_OBS} paths",
-              theory=k_fit[col], theory_ts=tf,
-              theory_label=rf"fit: $\hat\varepsilon={est['eps']:.3f}$, $\hat\nu={est['nu']:.3f}$")
+    plot.band(
+        ax,
+        ts_obs,
+        observed.cov[:, i, j],
+        se_cov[:, col],
+        label=f"data, {N_OBS} paths",
+        theory=k_fit[col],
+        theory_ts=tf,
+        theory_label=rf"fit: $\hat\varepsilon={est['eps']:.3f}$, $\hat\nu={est['nu']:.3f}$",
+    )
     ax.plot(tf, k_true[col], "k--", lw=0.8, label=rf"truth: $\varepsilon={EPS}$, $\nu={NU}$")
     ax.set_title(f"${label[0]}_{{{label[2:]}}}(t)$")
     ax.set_xlabel("t")
@@ -225,13 +240,19 @@ plot.save(fig, "fitting_ball_landscape.png")
 # %%
 N_SETS, N_EACH = 40, 1024
 many = nhsde.simulate(
-    ball_true, jnp.zeros(4), jax.random.key(3), n_paths=N_SETS * N_EACH, t1=4.0, dt=0.02, solver="sra1",
+    ball_true,
+    jnp.zeros(4),
+    jax.random.key(3),
+    n_paths=N_SETS * N_EACH,
+    t1=4.0,
+    dt=0.02,
+    solver="sra1",
     save=nhsde.Save(names=NAMES, n=9, paths=True),
 )
 zs, maha, chi2s = [], 0.0, []
 t0 = time.perf_counter()
 for s in range(N_SETS):
-    obs_s = fit.Observations.from_paths(many.ts[1:], many.paths[s * N_EACH:(s + 1) * N_EACH, 1:], NAMES)
+    obs_s = fit.Observations.from_paths(many.ts[1:], many.paths[s * N_EACH : (s + 1) * N_EACH, 1:], NAMES)
     res = fit.estimate(start, obs_s, fit.ClosedForm(ball_closed_form))
     d = res.values - np.array([EPS, NU])
     zs.append(d / res.se)
@@ -241,18 +262,27 @@ zs = np.array(zs)
 lo, hi = stats.chi2.ppf([0.025, 0.975], 2 * N_SETS)
 print(f"{N_SETS} fits in {time.perf_counter() - t0:.1f} s")
 print(f"sum of Mahalanobis distances {maha:.1f}; 95 % range of chi2({2 * N_SETS}): [{lo:.1f}, {hi:.1f}]")
-print(f"z(eps): mean {zs[:, 0].mean():+.2f}, sd {zs[:, 0].std(ddof=1):.2f};  "
-      f"z(nu): mean {zs[:, 1].mean():+.2f}, sd {zs[:, 1].std(ddof=1):.2f}  (ideal 0, 1)")
+print(
+    f"z(eps): mean {zs[:, 0].mean():+.2f}, sd {zs[:, 0].std(ddof=1):.2f};  "
+    f"z(nu): mean {zs[:, 1].mean():+.2f}, sd {zs[:, 1].std(ddof=1):.2f}  (ideal 0, 1)"
+)
 print(f"fit chi2: mean {np.mean(chi2s):.1f} on {res.dof} degrees of freedom")
 
 # %%
 fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
 for k, name in enumerate((r"$\varepsilon$", r"$\nu$")):
-    plot.density(axes[k], zs[:, k], stats.norm.pdf, bins=8, range=(-3, 3), label=f"{N_SETS} fits",
-                 theory_label="N(0, 1)")
+    plot.density(
+        axes[k], zs[:, k], stats.norm.pdf, bins=8, range=(-3, 3), label=f"{N_SETS} fits", theory_label="N(0, 1)"
+    )
     axes[k].set(title=f"standardised error of {name}", xlabel=r"$(\hat\theta-\theta)/\mathrm{SE}$")
-plot.density(axes[2], np.array(chi2s), stats.chi2(res.dof).pdf, bins=8, label=f"{N_SETS} fits",
-             theory_label=rf"$\chi^2_{{{res.dof}}}$")
+plot.density(
+    axes[2],
+    np.array(chi2s),
+    stats.chi2(res.dof).pdf,
+    bins=8,
+    label=f"{N_SETS} fits",
+    theory_label=rf"$\chi^2_{{{res.dof}}}$",
+)
 axes[2].set(title="goodness of fit", xlabel=r"$\chi^2$ of each fit")
 fig.suptitle("Calibration of the reported standard errors (grey: ±2 SE of a histogram of that many fits)")
 fig.tight_layout()
@@ -275,8 +305,9 @@ plot.save(fig, "fitting_calibration.png")
 S_EPS, S_NU = 0.5, 0.8
 Y0 = jnp.array([1.0, 0.5])
 sleigh_true = ChaplyginSleigh(eps=S_EPS, nu=S_NU, drift=False).build()
-s_data = nhsde.simulate(sleigh_true, Y0, jax.random.key(4), n_paths=N_OBS, t1=3.0, dt=0.02,
-                        save=nhsde.Save(n=7, paths=True))
+s_data = nhsde.simulate(
+    sleigh_true, Y0, jax.random.key(4), n_paths=N_OBS, t1=3.0, dt=0.02, save=nhsde.Save(n=7, paths=True)
+)
 s_obs = fit.Observations.from_paths(s_data.ts[1:], s_data.paths[:, 1:], ("v", "omega"))
 s_start = ChaplyginSleigh(eps=0.2, nu=0.3, drift=False).build()
 s_fits = {}
@@ -287,8 +318,10 @@ for label, model in [
     t0 = time.perf_counter()
     s_fits[label] = fit.estimate(s_start, s_obs, model)
     print(f"\n--- sleigh, {label} ({time.perf_counter() - t0:.1f} s incl. compilation)\n{s_fits[label]}")
-    print(f"(estimate − truth)/SE = {np.array2string(z_scores(s_fits[label], (S_EPS, S_NU)), precision=2)}, "
-          f"chi2 p-value {stats.chi2.sf(s_fits[label].chi2, s_fits[label].dof):.3g}")
+    print(
+        f"(estimate − truth)/SE = {np.array2string(z_scores(s_fits[label], (S_EPS, S_NU)), precision=2)}, "
+        f"chi2 p-value {stats.chi2.sf(s_fits[label].chi2, s_fits[label].dof):.3g}"
+    )
 
 # %% [markdown]
 # **Figure 4.** Observed means and variances of $v$ and $\omega$ (±2 SE) with
@@ -306,9 +339,11 @@ for label, res in s_fits.items():
         nhsde.statistics.normal_approximation(system, Y0, t1=3.0, dt=0.05, save=fine),
     )
 se = np.sqrt(np.diag(s_obs.covariance)).reshape(len(s_obs.ts), -1)  # v, ω, K_vv, K_vω, K_ωω
-panels = [("mean of v", s_obs.mean[:, 0], se[:, 0], lambda e: e.mean[:, 0]),
-          ("variance of v", s_obs.cov[:, 0, 0], se[:, 2], lambda e: e.cov[:, 0, 0]),
-          ("variance of ω", s_obs.cov[:, 1, 1], se[:, 4], lambda e: e.cov[:, 1, 1])]
+panels = [
+    ("mean of v", s_obs.mean[:, 0], se[:, 0], lambda e: e.mean[:, 0]),
+    ("variance of v", s_obs.cov[:, 0, 0], se[:, 2], lambda e: e.cov[:, 0, 0]),
+    ("variance of ω", s_obs.cov[:, 1, 1], se[:, 4], lambda e: e.cov[:, 1, 1]),
+]
 fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
 for ax, (title, value, err, pick) in zip(axes, panels):
     plot.band(ax, s_obs.ts, value, err, label=f"data, {N_OBS} paths")

@@ -68,7 +68,9 @@ print(" |n|   counter-clockwise                      clockwise")
 for n in (1.0, 2.0, 5.0, 10.0):
     ccw = linear_stability(kl.vector_field, kl.spin(n), kl.params, n_family=2)
     cw = linear_stability(kl.vector_field, kl.spin(-n), kl.params, n_family=2)
-    print(f"{n:4.0f}   {float(ccw.growth_rate):.4f} 1/s ({ccw.verdict})   {float(cw.growth_rate):.4f} 1/s ({cw.verdict})")
+    print(
+        f"{n:4.0f}   {float(ccw.growth_rate):.4f} 1/s ({ccw.verdict})   {float(cw.growth_rate):.4f} 1/s ({cw.verdict})"
+    )
 for n in (-50.0, 50.0):
     st = linear_stability(variant.vector_field, variant.spin(n), variant.params, n_family=2)
     print(f"variant n = {n:+.0f}: {st.verdict}, roots {np.round(np.asarray(st.roots), 4)}")
@@ -96,6 +98,7 @@ plot.save(fig, "rattleback_growth_rates.png", dpi=110)
 # at 50 rad/s from a tilt of `1e-4` settles back onto a steady spin (S4 Theorem 4.1),
 # the tilt decaying at the rate of its slowest root.
 
+
 # %%
 def tilt(flow):
     ys = np.asarray(flow.ys[0])
@@ -105,8 +108,9 @@ def tilt(flow):
 fig, axes = plt.subplots(1, 3, figsize=(14, 4))
 for ax, n, t1 in ((axes[0], 5.0, 6.0), (axes[1], -5.0, 60.0)):
     rate = float(linear_stability(kl.vector_field, kl.spin(n), kl.params, n_family=2).growth_rate)
-    flow = solve_flow(kl.vector_field, kl.spin(n, 1e-8, 0.7)[None], kl.params, t1=t1, n_save=6001, rtol=1e-12,
-                      atol=1e-14)
+    flow = solve_flow(
+        kl.vector_field, kl.spin(n, 1e-8, 0.7)[None], kl.params, t1=t1, n_save=6001, rtol=1e-12, atol=1e-14
+    )
     ts = np.asarray(flow.ts)
     ax.semilogy(ts, tilt(flow), "C0", lw=0.3, label="tilt |γ × e₃| (nonlinear flow)")
     ax.semilogy(ts, 1e-8 * np.exp(rate * ts), "k--", lw=1, label=f"e^(Re μ t), Re μ = {rate:.4f}/s")
@@ -116,12 +120,24 @@ for ax, n, t1 in ((axes[0], 5.0, 6.0), (axes[1], -5.0, 60.0)):
 axes[0].set_ylabel("tilt (rad)")
 
 slowest = float(linear_stability(variant.vector_field, variant.spin(-50.0), variant.params, n_family=2).roots[0].real)
-flow = solve_flow(variant.vector_field, variant.spin(-50.0, 1e-4, 0.7)[None], variant.params, t1=60.0, n_save=6001,
-                  rtol=1e-11, atol=1e-13)
+flow = solve_flow(
+    variant.vector_field,
+    variant.spin(-50.0, 1e-4, 0.7)[None],
+    variant.params,
+    t1=60.0,
+    n_save=6001,
+    rtol=1e-11,
+    atol=1e-13,
+)
 ts, ys = np.asarray(flow.ts), np.asarray(flow.ys[0])
 axes[2].semilogy(ts, tilt(flow), "C2", lw=0.3, label="tilt (nonlinear flow)")
-axes[2].semilogy(ts, 2 * tilt(flow)[2000:].max() * np.exp(slowest * (ts - ts[2000])), "k--", lw=1,
-                 label=f"∝ e^(Re μ t), Re μ = {slowest:.4f}/s")
+axes[2].semilogy(
+    ts,
+    2 * tilt(flow)[2000:].max() * np.exp(slowest * (ts - ts[2000])),
+    "k--",
+    lw=1,
+    label=f"∝ e^(Re μ t), Re μ = {slowest:.4f}/s",
+)
 axes[2].set_xlabel("t (s)")
 axes[2].set_title("variant, n = −50 rad/s: asymptotically stable")
 axes[2].legend(fontsize=7)
@@ -142,8 +158,9 @@ plot.save(fig, "rattleback_growth_fit.png", dpi=110)
 # integrals) stay constant to the integration tolerance.
 
 # %%
-flow = solve_flow(kl.vector_field, jnp.stack([kl.spin(5.0, 1e-3), kl.spin(-5.0, 1e-3)]), kl.params, t1=60.0,
-                  n_save=6001)
+flow = solve_flow(
+    kl.vector_field, jnp.stack([kl.spin(5.0, 1e-3), kl.spin(-5.0, 1e-3)]), kl.params, t1=60.0, n_save=6001
+)
 ts, ys = np.asarray(flow.ts), np.asarray(flow.ys)
 spin = np.sum(ys[..., :3] * ys[..., 3:], axis=-1) / np.linalg.norm(ys[..., 3:], axis=-1)
 drift = integral_drift({"E": lambda y, p: kl.energy(y), "γ²": lambda y, p: y[3:] @ y[3:]}, flow, kl.params)

@@ -54,8 +54,18 @@ N_CROSSINGS = 150
 
 
 def section(scene, h, g0, backward=False, dt=0.04):
-    return A.poincare_section(scene.vector_field, B.rolling_energy, scene.params, POINTS, h=h, g0=g0,
-                              n_crossings=N_CROSSINGS, dt=dt, max_time=4000.0, backward=backward)
+    return A.poincare_section(
+        scene.vector_field,
+        B.rolling_energy,
+        scene.params,
+        POINTS,
+        h=h,
+        g0=g0,
+        n_crossings=N_CROSSINGS,
+        dt=dt,
+        max_time=4000.0,
+        backward=backward,
+    )
 
 
 def draw(ax, sec, skip=0, **kw):
@@ -84,8 +94,10 @@ print(f"Fig. 3: relative spread of F₂ along each orbit ≤ {spread:.1e}")
 fig4 = ball((2.6, 1.2, 1.8), offset=(0.0, 0.0, 2.9))
 s4 = section(fig4, h=10.0, g0=np.pi)
 f2u = jax.vmap(jax.vmap(lambda y: B.unbalanced_ball_integral(y, fig4.params)))(s4.states)
-print(f"Fig. 4: relative spread of (3.19) along each orbit ≤ "
-      f"{float(jnp.nanmax((jnp.nanmax(f2u, 1) - jnp.nanmin(f2u, 1)) / jnp.abs(jnp.nanmean(f2u, 1)))):.1e}")
+print(
+    f"Fig. 4: relative spread of (3.19) along each orbit ≤ "
+    f"{float(jnp.nanmax((jnp.nanmax(f2u, 1) - jnp.nanmin(f2u, 1)) / jnp.abs(jnp.nanmean(f2u, 1)))):.1e}"
+)
 
 fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
 draw(axes[0], s3, c="k")

@@ -56,7 +56,9 @@ from nhsde.scenes import BallOnVibratingPlane, ChaplyginSleigh, ball_covariances
 T_START = time.perf_counter()
 
 
-print(f"nhsde {nhsde.__version__}, jax {jax.__version__}; solvers {list(nhsde.SOLVERS)}; figures -> {plot.figure_dir()}")
+print(
+    f"nhsde {nhsde.__version__}, jax {jax.__version__}; solvers {list(nhsde.SOLVERS)}; figures -> {plot.figure_dir()}"
+)
 
 # %% [markdown]
 # ## The two cases
@@ -80,16 +82,22 @@ J = float(sp.inertia + sp.mass * sp.offset**2)
 H0 = 0.5 * (float(sp.mass) * 1.0 + J * 0.25)
 CASES = {
     "ball": {
-        "system": ball.build(), "y0": ball.initial_state().astype(jnp.float64), "t1": 2.0,
+        "system": ball.build(),
+        "y0": ball.initial_state().astype(jnp.float64),
+        "t1": 2.0,
         "statistic": lambda ens: (ens.cov[-1, 0, 0], ens.cov_se[-1, 0, 0]),
         "reference": float(ball_covariances(jnp.float64(2.0), 1.0, 1.0, float(ball.params.delta))[0]),
-        "save": nhsde.Save(names=("x",), n=2), "label": r"$k_{xx}(t_1)$",
+        "save": nhsde.Save(names=("x",), n=2),
+        "label": r"$k_{xx}(t_1)$",
     },
     "sleigh": {
-        "system": sleigh.build(), "y0": sleigh.initial_state().astype(jnp.float64).at[4].set(0.5), "t1": 2.0,
+        "system": sleigh.build(),
+        "y0": sleigh.initial_state().astype(jnp.float64).at[4].set(0.5),
+        "t1": 2.0,
         "statistic": lambda ens: (ens.mean[-1, 0], ens.mean_se[-1, 0]),
         "reference": H0 * np.exp(-4 * 0.5 * 2.0) + 1.0 * (1 - np.exp(-4 * 0.5 * 2.0)) / (4 * 0.5),
-        "save": nhsde.Save(names=("energy",), n=2), "label": r"$\mathbb{E}[H](t_1)$",
+        "save": nhsde.Save(names=("energy",), n=2),
+        "label": r"$\mathbb{E}[H](t_1)$",
     },
 }
 
@@ -101,14 +109,24 @@ rows = {}
 for name, case in CASES.items():
     t0 = time.perf_counter()
     rows[name] = work_precision(
-        case["system"], case["y0"], jax.random.key(0), t1=case["t1"], solvers=SOLVERS, dts=DTS,
-        statistic=case["statistic"], reference=case["reference"], n_paths=N_PATHS, save=case["save"],
+        case["system"],
+        case["y0"],
+        jax.random.key(0),
+        t1=case["t1"],
+        solvers=SOLVERS,
+        dts=DTS,
+        statistic=case["statistic"],
+        reference=case["reference"],
+        n_paths=N_PATHS,
+        save=case["save"],
     )
     print(f"\n[{name}] exact {case['reference']:.6g}; measured in {time.perf_counter() - t0:.0f} s")
     print(f"{'solver':<12}{'dt':>8}{'strong':>11}{'weak':>11}{'MC se':>10}{'ms':>9}")
     for r in rows[name]:
-        print(f"{r.solver:<12}{r.dt:>8.4g}{r.strong_error:>11.3g}{r.weak_error:>11.3g}{r.weak_se:>10.2g}"
-              f"{1e3 * r.seconds:>9.2f}")
+        print(
+            f"{r.solver:<12}{r.dt:>8.4g}{r.strong_error:>11.3g}{r.weak_error:>11.3g}{r.weak_se:>10.2g}"
+            f"{1e3 * r.seconds:>9.2f}"
+        )
 
 # %% [markdown]
 # **Figure 1.** Strong error (top) and weak error (bottom) against wall time,
@@ -136,8 +154,9 @@ for col, (name, rs) in enumerate(rows.items()):
     weakest = min(max(r.weak_error, 1e-16) for r in rs)
     axes[1, col].set_ylim(bottom=min(se / 20, weakest / 2))
     axes[0, col].set(title=f"{name}: strong error at $t_1$ (labels: $\\Delta t$)", ylabel="RMS error")
-    axes[1, col].set(title=f"{name}: weak error of {CASES[name]['label']}", xlabel="wall time [s]",
-                     ylabel="|statistic − exact|")
+    axes[1, col].set(
+        title=f"{name}: weak error of {CASES[name]['label']}", xlabel="wall time [s]", ylabel="|statistic − exact|"
+    )
     for ax in axes[:, col]:
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)

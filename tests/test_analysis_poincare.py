@@ -28,8 +28,9 @@ def test_fig3_integrable_ball_section_lies_on_invariant_curves():
     """
     scene = RollingBody(body=B.RigidBody(mass=1.0, inertia=(1.0, 2.0, 3.0), surface=B.Sphere(radius=3.0)))
     points = jnp.stack([jnp.linspace(0.3, 2.8, 6), jnp.linspace(-0.8, 0.8, 6)], axis=1)
-    section = A.poincare_section(scene.vector_field, B.rolling_energy, scene.params, points, h=10.0, g0=0.0,
-                                 n_crossings=30, dt=0.02)
+    section = A.poincare_section(
+        scene.vector_field, B.rolling_energy, scene.params, points, h=10.0, g0=0.0, n_crossings=30, dt=0.02
+    )
     assert bool(jnp.all(section.valid))
     states = section.states
     energy = jax.vmap(jax.vmap(lambda y: B.rolling_energy(y, scene.params)))(states)
@@ -86,8 +87,9 @@ def test_fig7_attractor_and_repeller_are_mirror_images(unbalanced_ball_in_gravit
     scene, p = unbalanced_ball_in_gravity, unbalanced_ball_in_gravity.params
     kw = {"h": 50.0, "g0": np.pi, "n_crossings": 150, "dt": 0.02}
     forward = A.poincare_section(scene.vector_field, B.rolling_energy, p, jnp.array([[0.45, 0.85], [0.6, 0.75]]), **kw)
-    backward = A.poincare_section(scene.vector_field, B.rolling_energy, p, jnp.array([[3.7, -0.8], [3.45, -0.92]]),
-                                  backward=True, **kw)
+    backward = A.poincare_section(
+        scene.vector_field, B.rolling_energy, p, jnp.array([[3.7, -0.8], [3.45, -0.92]]), backward=True, **kw
+    )
     assert bool(jnp.all(forward.valid)) and bool(jnp.all(backward.valid))
     attractor = jnp.stack([forward.l[:, 75:].ravel(), forward.ratio[:, 75:].ravel()], axis=1)
     ml, mr = reflect(backward.l[:, 75:].ravel(), backward.ratio[:, 75:].ravel())
@@ -100,7 +102,9 @@ def test_fig7_attractor_and_repeller_are_mirror_images(unbalanced_ball_in_gravit
     on_repeller = A.solve_flow(scene.vector_field, backward.states[:, -1], p, t1=-t1, log_volume=True, n_save=2)
     rate_attractor = on_attractor.log_volume[:, -1] / t1
     rate_repeller = -on_repeller.log_volume[:, -1] / t1  # forward-time rate along the repeller
-    print(f"mean divergence: attractor {np.round(np.asarray(rate_attractor), 4)}, repeller "
-          f"{np.round(np.asarray(rate_repeller), 4)}; max mirrored distance {float(jnp.max(dist)):.3f}")
+    print(
+        f"mean divergence: attractor {np.round(np.asarray(rate_attractor), 4)}, repeller "
+        f"{np.round(np.asarray(rate_repeller), 4)}; max mirrored distance {float(jnp.max(dist)):.3f}"
+    )
     assert bool(jnp.all(rate_attractor < -0.005)), rate_attractor
     np.testing.assert_allclose(rate_repeller, -jnp.mean(rate_attractor), rtol=0.25)

@@ -53,8 +53,12 @@ def _cruise_diffusion(t, y, p):
 
 def cruise(**params):
     return StochasticSystem(
-        drift_fn=_cruise_drift, diffusion_fn=_cruise_diffusion, params=CruiseParameters(**params),
-        layout=StateLayout(("v", "omega"), ("velocity", "velocity")), noise_dim=2, additive_noise=True,
+        drift_fn=_cruise_drift,
+        diffusion_fn=_cruise_diffusion,
+        params=CruiseParameters(**params),
+        layout=StateLayout(("v", "omega"), ("velocity", "velocity")),
+        noise_dim=2,
+        additive_noise=True,
     )
 
 
@@ -102,8 +106,12 @@ def test_spread_is_the_closed_form_with_exact_gradients():
         s = cruise(eps=e, nu=n, **GEOMETRY)
         return stationary_spread(s, steady(s)).cov
 
-    m, j, a, v0 = GEOMETRY["mass"], GEOMETRY["inertia"] + GEOMETRY["mass"] * GEOMETRY["offset"] ** 2, GEOMETRY[
-        "offset"], GEOMETRY["speed"]
+    m, j, a, v0 = (
+        GEOMETRY["mass"],
+        GEOMETRY["inertia"] + GEOMETRY["mass"] * GEOMETRY["offset"] ** 2,
+        GEOMETRY["offset"],
+        GEOMETRY["speed"],
+    )
     analytic = {  # (∂/∂ε, ∂/∂ν) of (Σ_vv, Σ_ωω)
         "eps": np.array([-nu / (4 * eps**2 * m), -nu * j / (m * a * v0 + 2 * eps * j) ** 2]),
         "nu": np.array([1 / (4 * eps * m), 1 / (2 * (m * a * v0 + 2 * eps * j))]),
@@ -212,8 +220,9 @@ def test_residence_time_errors():
     with pytest.raises(ValueError, match="infinite"):
         linear_residence_time(quiet, z0, component="omega", radius=1.0)
     with pytest.raises(ValueError, match="save_every"):
-        residence_time(system, z0, jax.random.key(0), component="omega", radius=1.0, n_paths=64, t1=1.0, dt=0.1,
-                       save_every=3)
+        residence_time(
+            system, z0, jax.random.key(0), component="omega", radius=1.0, n_paths=64, t1=1.0, dt=0.1, save_every=3
+        )
 
 
 # ----------------------------------------------------------------------------- Monte Carlo
@@ -239,9 +248,12 @@ def test_monte_carlo_stationary_covariance_matches_the_lyapunov_solution():
         devs[nu] = (cov - np.asarray(spread.cov)) / se
         shift = float(ens.mean[-1, 0]) - 3.0
         shift_pred = float(jnp.mean(ens.paths[:, -1, 1] ** 2)) / (2 * 0.25)
-        print(f"nu={nu}: (MC − Σ)/SE = {devs[nu][0, 0]:.2f}, {devs[nu][1, 1]:.2f}, {devs[nu][0, 1]:.2f}; "
-              f"rel {(cov[1, 1] / float(spread.cov[1, 1]) - 1):+.3f}; E v − v0 = {shift:.4f} ± {float(ens.mean_se[-1, 0]):.4f} "
-              f"(a E[ω²]/2ε = {shift_pred:.4f})")
+        print(
+            f"nu={nu}: (MC − Σ)/SE = {devs[nu][0, 0]:.2f}, {devs[nu][1, 1]:.2f}, {devs[nu][0, 1]:.2f}; "
+            f"rel {(cov[1, 1] / float(spread.cov[1, 1]) - 1):+.3f}; E v − v0 = {shift:.4f} ± "
+            f"{float(ens.mean_se[-1, 0]):.4f} "
+            f"(a E[ω²]/2ε = {shift_pred:.4f})"
+        )
         if nu == SMALL_NU:
             assert np.all(np.abs(devs[nu]) < 3), devs[nu]
             assert abs(shift - shift_pred) < 3 * float(ens.mean_se[-1, 0])
@@ -267,9 +279,11 @@ def test_monte_carlo_residence_time_agrees_with_the_linearisation_at_small_noise
         mc = residence_time(system, z0, jax.random.key(1), component="omega", radius=radius, **MC)
         runs[nu] = (lin, mc)
         rel, rel_se = float(mc.mean / lin.mean - 1), float(mc.mean_se / lin.mean)
-        print(f"nu={nu}: T_lin={float(lin.mean):.4f}, MC={float(mc.mean):.4f} ± {float(mc.mean_se):.4f} "
-              f"({rel:+.4f} ± {rel_se:.4f}), grid={float(mc.grid_mean):.4f}, censored={int(mc.n_censored)}, "
-              f"survival={float(mc.survival_mean):.2e}, failed={int(mc.n_failed)}")
+        print(
+            f"nu={nu}: T_lin={float(lin.mean):.4f}, MC={float(mc.mean):.4f} ± {float(mc.mean_se):.4f} "
+            f"({rel:+.4f} ± {rel_se:.4f}), grid={float(mc.grid_mean):.4f}, censored={int(mc.n_censored)}, "
+            f"survival={float(mc.survival_mean):.2e}, failed={int(mc.n_failed)}"
+        )
         assert int(mc.n_failed) == 0
         if nu == SMALL_NU:
             assert abs(rel) < 3 * rel_se
@@ -293,8 +307,17 @@ def test_richardson_extrapolation_combines_paired_runs():
     no = jnp.zeros(5, bool)
 
     def run(times, spacing, failed):
-        return Residence(times=times, grid_times=times, survival=jnp.zeros(5), censored=no, failed=failed,
-                         radius=jnp.asarray(1.0), spacing=spacing, t1=10.0, name="x")
+        return Residence(
+            times=times,
+            grid_times=times,
+            survival=jnp.zeros(5),
+            censored=no,
+            failed=failed,
+            radius=jnp.asarray(1.0),
+            spacing=spacing,
+            t1=10.0,
+            name="x",
+        )
 
     fine = run(fine_t, 0.01, no)
     coarse = run(coarse_t, 0.03, no.at[4].set(True))
@@ -304,9 +327,19 @@ def test_richardson_extrapolation_combines_paired_runs():
     with pytest.raises(ValueError, match="must exceed"):
         coarse.extrapolated(fine)
     with pytest.raises(ValueError, match="same paths"):
-        fine.extrapolated(Residence(times=fine_t[:4], grid_times=fine_t[:4], survival=jnp.zeros(4),
-                                    censored=no[:4], failed=no[:4], radius=jnp.asarray(1.0), spacing=0.02, t1=10.0,
-                                    name="x"))
+        fine.extrapolated(
+            Residence(
+                times=fine_t[:4],
+                grid_times=fine_t[:4],
+                survival=jnp.zeros(4),
+                censored=no[:4],
+                failed=no[:4],
+                radius=jnp.asarray(1.0),
+                spacing=0.02,
+                t1=10.0,
+                name="x",
+            )
+        )
 
 
 @pytest.mark.slow
@@ -318,13 +351,17 @@ def test_bridge_correction_converges_in_the_save_spacing():
     z0 = steady(system)
     radius = 1.5 * stationary_spread(system, z0).std[1]
     lin = linear_residence_time(system, z0, component="omega", radius=radius)
-    runs = {k: residence_time(system, z0, jax.random.key(1), component="omega", radius=radius, save_every=k, **MC)
-            for k in (1, 4)}
+    runs = {
+        k: residence_time(system, z0, jax.random.key(1), component="omega", radius=radius, save_every=k, **MC)
+        for k in (1, 4)
+    }
     d = runs[4].times - runs[1].times
     d_mean, d_se = float(jnp.mean(d)), float(jnp.std(d) / math.sqrt(d.size))
     bias = {k: float(r.grid_mean / lin.mean - 1) for k, r in runs.items()}
-    print(f"bridge: {float(runs[1].mean):.4f} (h=0.01), {float(runs[4].mean):.4f} (h=0.04), paired diff "
-          f"{d_mean:+.4f} ± {d_se:.4f}; grid bias {bias[1]:+.3f}, {bias[4]:+.3f}, ratio {bias[4] / bias[1]:.2f}")
+    print(
+        f"bridge: {float(runs[1].mean):.4f} (h=0.01), {float(runs[4].mean):.4f} (h=0.04), paired diff "
+        f"{d_mean:+.4f} ± {d_se:.4f}; grid bias {bias[1]:+.3f}, {bias[4]:+.3f}, ratio {bias[4] / bias[1]:.2f}"
+    )
     assert abs(d_mean) < 3 * d_se
 
 
@@ -357,17 +394,25 @@ def test_multiplicative_noise_monte_carlo_with_richardson_against_the_exact_exit
     system = StochasticSystem(
         drift_fn=lambda t, y, p: -(p.kappa * y + p.beta * y**3),
         diffusion_fn=lambda t, y, p: jnp.sqrt(p.nu * (1 + y**2))[:, None],
-        params=_Cubic(), layout=StateLayout(("x",), ("velocity",)), noise_dim=1,
+        params=_Cubic(),
+        layout=StateLayout(("x",), ("velocity",)),
+        noise_dim=1,
     )
     exact = _bvp_exit_time(lambda x: -(x + x**3), lambda x: 1 + x**2, 1.0)
     z0 = jnp.zeros(1)
     h = 0.02
-    fine, coarse = (residence_time(system, z0, jax.random.key(5), component="x", radius=1.0, n_paths=4096,
-                                   t1=12.0, dt=step, brownian_dt=h) for step in (h, 2 * h))
+    fine, coarse = (
+        residence_time(
+            system, z0, jax.random.key(5), component="x", radius=1.0, n_paths=4096, t1=12.0, dt=step, brownian_dt=h
+        )
+        for step in (h, 2 * h)
+    )
     mean, se = fine.extrapolated(coarse)
-    print(f"exact {exact:.4f}; Euler h: {float(fine.mean):.4f} ± {float(fine.mean_se):.4f}, 2h: "
-          f"{float(coarse.mean):.4f}; extrapolated {float(mean):.4f} ± {float(se):.4f}; "
-          f"survival {float(fine.survival_mean):.1e}")
+    print(
+        f"exact {exact:.4f}; Euler h: {float(fine.mean):.4f} ± {float(fine.mean_se):.4f}, 2h: "
+        f"{float(coarse.mean):.4f}; extrapolated {float(mean):.4f} ± {float(se):.4f}; "
+        f"survival {float(fine.survival_mean):.1e}"
+    )
     assert int(fine.n_failed) == 0 == int(coarse.n_failed)
     assert abs(float(mean) - exact) < 3 * float(se)
     step_bias = fine.times - coarse.times  # the O(h) bias, seen between the paired runs
@@ -389,8 +434,7 @@ def test_pathwise_monte_carlo_gradient_of_the_residence_time():
     radius = 1.5 * math.sqrt(SMALL_NU / 8)
 
     def times(e, n):
-        return residence_time(cruise(eps=e, nu=n), z0, jax.random.key(1), component="omega", radius=radius,
-                              **MC).times
+        return residence_time(cruise(eps=e, nu=n), z0, jax.random.key(1), component="omega", radius=radius, **MC).times
 
     def t_lin(e, n):
         return linear_residence_time(cruise(eps=e, nu=n), z0, component="omega", radius=radius).mean

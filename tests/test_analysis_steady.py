@@ -56,7 +56,10 @@ def _sleigh(stiffness):
     base = ChaplyginSleighFromSpec(eps=0.0, nu=0.0).spec()
     params = SpringSleighParameters(eps=0.0, nu=0.0, mass=M, inertia=I, offset=A_OFF, stiffness=stiffness)
     spec = MechanicalSpec(
-        coordinates=base.coordinates, params=params, kinetic_energy=base.kinetic_energy, constraints=base.constraints,
+        coordinates=base.coordinates,
+        params=params,
+        kinetic_energy=base.kinetic_energy,
+        constraints=base.constraints,
         potential=_heading_spring,
     )
     return chaplygin_system(spec, ("y",), jnp.zeros(3))
@@ -177,7 +180,9 @@ def test_rolling_disk_kinematics_from_lagrangian(disk):
         v = jnp.concatenate([r * angles[2] * jnp.stack([jnp.cos(q[2]), jnp.sin(q[2])]), angles])
         assert float(jnp.max(jnp.abs(spec.constraint_residual(q, v, jnp.zeros(0), 0.0, p)))) < 1e-14
         g_dot, omega, _ = rolling_disk_kinematics(q, v, p)
-        centre_to_contact = -r * jnp.stack([jnp.sin(q[3]) * jnp.sin(q[2]), -jnp.sin(q[3]) * jnp.cos(q[2]), jnp.cos(q[3])])
+        centre_to_contact = -r * jnp.stack(
+            [jnp.sin(q[3]) * jnp.sin(q[2]), -jnp.sin(q[3]) * jnp.cos(q[2]), jnp.cos(q[3])]
+        )
         np.testing.assert_allclose(np.asarray(g_dot + jnp.cross(omega, centre_to_contact)), 0.0, atol=1e-14)
     assert [spec.coordinates[i] for i in system.positional] == ["theta"]
     assert [spec.coordinates[i] for i in system.pseudo_cyclic] == ["psi", "phi"]
@@ -289,12 +294,16 @@ def test_hopf_point_of_the_spring_sleigh():
         result = steady_stability(system, steady_motions(system, {"x_dot": speed}))
         expected = np.roots([J, M * A_OFF * speed, kappa])
         np.testing.assert_allclose(np.sort_complex(np.asarray(result.roots)), np.sort_complex(expected), rtol=1e-12)
-        np.testing.assert_allclose(np.sort_complex(np.asarray(result.drift.roots)), np.sort_complex(expected), rtol=1e-10)
+        np.testing.assert_allclose(
+            np.sort_complex(np.asarray(result.drift.roots)), np.sort_complex(expected), rtol=1e-10
+        )
     boundary = stability_boundary(system, {"x_dot": -0.5}, {"x_dot": 1.0})
     assert boundary.verdicts == ("unstable", "asymptotically stable")
     assert boundary.kind == "Andronov–Hopf"
     assert abs(boundary.parameter["x_dot"]) < 1e-12
-    np.testing.assert_allclose(np.sort(np.abs(np.asarray(boundary.critical_roots).imag)), np.sqrt(kappa / J), rtol=1e-10)
+    np.testing.assert_allclose(
+        np.sort(np.abs(np.asarray(boundary.critical_roots).imag)), np.sqrt(kappa / J), rtol=1e-10
+    )
 
 
 # ------------------------------------------------------------------ the generic linear test
@@ -310,7 +319,9 @@ def test_linear_stability_on_a_damped_oscillator():
         params = jnp.array([2.0, c])
         result = linear_stability(field, jnp.zeros(3), params, n_family=1)
         assert result.verdict == verdict
-        np.testing.assert_allclose(np.sort_complex(np.asarray(result.roots)), np.sort_complex(np.roots([1, c, 2.0])), rtol=1e-14)
+        np.testing.assert_allclose(
+            np.sort_complex(np.asarray(result.roots)), np.sort_complex(np.roots([1, c, 2.0])), rtol=1e-14
+        )
     with pytest.raises(ValueError, match=r"not a steady state.*\|f\(state\)\| = 2\.508e\+00"):
         linear_stability(field, jnp.ones(3), jnp.array([2.0, 0.3]), n_family=1)
     with pytest.raises(ValueError, match=r"the 2 smallest eigenvalues .* are not ≈ 0"):
@@ -331,14 +342,22 @@ def test_non_chaplygin_specs_are_refused():
     """M depending on y (ż = z ẋ), or V depending on y (an incline along y): clear errors."""
     params = ParticleParameters(eps=0.0, nu=0.0)
     particle = MechanicalSpec(
-        coordinates=("x", "y", "z"), params=params, kinetic_energy=lambda q, v, pi, t, p: 0.5 * v @ v,
+        coordinates=("x", "y", "z"),
+        params=params,
+        kinetic_energy=lambda q, v, pi, t, p: 0.5 * v @ v,
         constraints=lambda q, pi, t, p: jnp.stack([-q[2], jnp.zeros((), q.dtype), jnp.ones((), q.dtype)])[None],
     )
-    with pytest.raises(ValueError, match=r"not a Chaplygin system: the constraint matrix M .* depends on the dependent coordinate\(s\) \('z',\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"not a Chaplygin system: the constraint matrix M .* depends on the dependent coordinate\(s\) \('z',\)",
+    ):
         chaplygin_system(particle, ("z",), jnp.ones(3))
     base = ChaplyginSleighFromSpec(eps=0.0, nu=0.0).spec()
     incline = MechanicalSpec(
-        coordinates=base.coordinates, params=params, kinetic_energy=base.kinetic_energy, constraints=base.constraints,
+        coordinates=base.coordinates,
+        params=params,
+        kinetic_energy=base.kinetic_energy,
+        constraints=base.constraints,
         potential=lambda q, pi, t, p: p.mass * 9.81 * p.slope * (q[1] + p.offset * jnp.sin(q[2])),
     )
     with pytest.raises(ValueError, match=r"not a Chaplygin system: the potential V depends on .* \('y',\)"):
@@ -350,7 +369,9 @@ def test_non_chaplygin_specs_are_refused():
 def test_family_parameter_outside_the_domain(disk):
     """A tilted disk cannot roll straight: θ = 0.3, ψ̇ = 0 has no steady motion; wrong names are named."""
     _, system = disk
-    with pytest.raises(ValueError, match=r"no steady motion with theta=0\.3, psi_dot=0: .* outside the family's domain"):
+    with pytest.raises(
+        ValueError, match=r"no steady motion with theta=0\.3, psi_dot=0: .* outside the family's domain"
+    ):
         steady_motions(system, {"theta": 0.3, "psi_dot": 0.0}, {"phi_dot": 1.0})
     with pytest.raises(ValueError, match=r"family fixes \['phi_dot'\]; give exactly m = 2"):
         steady_motions(system, {"phi_dot": 1.0})

@@ -16,8 +16,14 @@ def lyapunov_covariance(t, eps, nu, delta):
     a = jnp.array([[0.0, 1.0], [0.0, -2.0 * eps]])
     q = jnp.array([[0.0, 0.0], [0.0, nu * delta**2]])
     sol = dfx.diffeqsolve(
-        dfx.ODETerm(lambda t, k, args: a @ k + k @ a.T + q), dfx.Dopri8(), 0.0, t, 1e-3, jnp.zeros((2, 2)),
-        stepsize_controller=dfx.PIDController(rtol=1e-13, atol=1e-15), max_steps=100_000,
+        dfx.ODETerm(lambda t, k, args: a @ k + k @ a.T + q),
+        dfx.Dopri8(),
+        0.0,
+        t,
+        1e-3,
+        jnp.zeros((2, 2)),
+        stepsize_controller=dfx.PIDController(rtol=1e-13, atol=1e-15),
+        max_steps=100_000,
     )
     return sol.ys[-1]
 
@@ -59,8 +65,13 @@ def test_ensemble_covariances_match_closed_form(dtype):
     eps, nu = 1.0, 2.0
     scene = BallOnVibratingPlane(eps=eps, nu=nu)
     ens = nhsde.simulate(
-        scene.build(), scene.initial_state().astype(dtype), jax.random.key(1),
-        n_paths=8192, t1=3.0, dt=0.002, save=nhsde.Save(n=7),
+        scene.build(),
+        scene.initial_state().astype(dtype),
+        jax.random.key(1),
+        n_paths=8192,
+        t1=3.0,
+        dt=0.002,
+        save=nhsde.Save(n=7),
     )
     assert ens.mean.dtype == dtype
     k_xx, k_xu, k_uu = ball_covariances(ens.ts.astype(jnp.float64), eps, nu, scene.params.delta.astype(jnp.float64))
@@ -80,8 +91,14 @@ def test_effective_diffusion_and_stationary_moments():
     eps, nu = 2.0, 1.0
     scene = BallOnVibratingPlane(eps=eps, nu=nu)
     ens = nhsde.simulate(
-        scene.build(), scene.initial_state().astype(jnp.float64), jax.random.key(2),
-        n_paths=8192, t1=8.0, dt=0.004, save=nhsde.Save(n=9), solver="sra1",
+        scene.build(),
+        scene.initial_state().astype(jnp.float64),
+        jax.random.key(2),
+        n_paths=8192,
+        t1=8.0,
+        dt=0.004,
+        save=nhsde.Save(n=9),
+        solver="sra1",
     )
     g = nu * float(scene.params.delta) ** 2
     # over t ∈ [4, 8], K_xx grows at rate g/(4ε²) up to e^{−2εt} ≈ 1e-7

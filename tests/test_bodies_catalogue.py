@@ -62,7 +62,9 @@ def check_case(case, flow=False):
     rates = A.integral_rates(f, integrals, states, p)
     speed = jnp.linalg.norm(jax.vmap(lambda y: f(0.0, y, p))(states), axis=1)
     size = jnp.linalg.norm(states, axis=1)
-    scales = {name: float(jnp.mean(jnp.abs(jax.vmap(F, in_axes=(0, None))(states, p)))) for name, F in integrals.items()}
+    scales = {
+        name: float(jnp.mean(jnp.abs(jax.vmap(F, in_axes=(0, None))(states, p)))) for name, F in integrals.items()
+    }
     for name in integrals:
         assert bool(jnp.all(jnp.abs(rates[name]) < 1e-10 * scales[name] * speed / size)), (name, rates[name])
     if not flow:
@@ -81,8 +83,15 @@ def check_case(case, flow=False):
 def rubber(surface, inertia, density, integrals, key, mass=1.0, curvature=None, gyrostat=(0.0, 0.0, 0.0), **extra):
     body = B.RigidBody(mass=mass, inertia=inertia, surface=surface, gyrostat=gyrostat)
     scene = RollingBody(body=body, contact="rubber", curvature=curvature)
-    return {"field": scene.vector_field, "params": scene.params, "density": density, "integrals": integrals,
-            "states": manifold_states(jax.random.key(key), 128), "constraints": RUBBER, **extra}
+    return {
+        "field": scene.vector_field,
+        "params": scene.params,
+        "density": density,
+        "integrals": integrals,
+        "states": manifold_states(jax.random.key(key), 128),
+        "constraints": RUBBER,
+        **extra,
+    }
 
 
 def flat_base(case):
@@ -96,8 +105,14 @@ def flat_base(case):
         scene = FlatBaseOnSphere(mass=1.2, inertia=(1.1, 1.1, 2.3), z=-0.6, curvature=0.7)
         states = jax.random.normal(jax.random.key(7), (128, 4), jnp.float64) * jnp.array([0.3, 0.3, 1.0, 1.0])
         t1 = 5.0
-    return {"field": scene.vector_field, "params": scene.params, "density": B.flat_base_measure, "states": states,
-            "t1": t1, "integrals": {"E": B.flat_base_energy, "F2": B.flat_base_integral}}
+    return {
+        "field": scene.vector_field,
+        "params": scene.params,
+        "density": B.flat_base_measure,
+        "states": states,
+        "t1": t1,
+        "integrals": {"E": B.flat_base_energy, "F2": B.flat_base_integral},
+    }
 
 
 def chaplygin_case():
@@ -109,8 +124,14 @@ def chaplygin_case():
         "Mg": lambda x, p: jnp.dot(x[:3], x[3:6]),
         "H": lambda x, p: 0.5 * jnp.dot(x[:3], chaplygin_ball_omega(x[:3], x[3:6], p)),
     }
-    return {"field": scene.build().drift_fn, "params": scene.params, "density": chaplygin_ball_measure,
-            "integrals": integrals, "states": states, "constraints": {"gamma2": gamma_sq}}
+    return {
+        "field": scene.build().drift_fn,
+        "params": scene.params,
+        "density": chaplygin_ball_measure,
+        "integrals": integrals,
+        "states": states,
+        "constraints": {"gamma2": gamma_sq},
+    }
 
 
 PROFILE = B.BodyOfRevolution(
@@ -122,27 +143,49 @@ ENERGY = {"E": B.rolling_energy}
 
 CASES = {
     # S2 (3.14)–(3.15), Fig. 3 parameters: ρ = (γ, J⁻¹γ)^{1/2}, F₂ = (Jω × γ)²
-    "balanced ball": lambda: rubber(B.Sphere(radius=3.0), (1.0, 2.0, 3.0), B.balanced_ball_measure,
-                                    ENERGY | {"F2": B.balanced_ball_integral}, 0),
+    "balanced ball": lambda: rubber(
+        B.Sphere(radius=3.0), (1.0, 2.0, 3.0), B.balanced_ball_measure, ENERGY | {"F2": B.balanced_ball_integral}, 0
+    ),
     # rotor S2 (1.7): the measure is unchanged, F₂ = (Jω + S)² − (Jω + S, γ)²
-    "balanced gyrostat": lambda: rubber(B.Sphere(radius=1.5), (1.0, 2.0, 3.0), B.balanced_ball_measure,
-                                        ENERGY | {"F2": B.balanced_ball_integral}, 1, gyrostat=(0.7, -0.35, 0.4)),
+    "balanced gyrostat": lambda: rubber(
+        B.Sphere(radius=1.5),
+        (1.0, 2.0, 3.0),
+        B.balanced_ball_measure,
+        ENERGY | {"F2": B.balanced_ball_integral},
+        1,
+        gyrostat=(0.7, -0.35, 0.4),
+    ),
     # S2 §3.1 from a profile with the centre of mass off-centre: ρ = g₁^{1/2} g₂, F₂ = g₁^{1/2} ω₃ (3.4)
-    "body of revolution": lambda: rubber(PROFILE, (2.0, 2.0, 1.3), B.revolution_measure,
-                                         ENERGY | {"F2": B.revolution_integral}, 2, mass=1.5),
+    "body of revolution": lambda: rubber(
+        PROFILE, (2.0, 2.0, 1.3), B.revolution_measure, ENERGY | {"F2": B.revolution_integral}, 2, mass=1.5
+    ),
     # S2 (3.7): I = μE on an off-centre ellipsoid
-    "spherical inertia": lambda: rubber(B.Ellipsoid(semi_axes=(1.0, 1.5, 2.2), offset=(0.1, -0.2, 0.3)),
-                                        (2.0, 2.0, 2.0), B.spherical_inertia_measure, ENERGY, 3, mass=1.3),
+    "spherical inertia": lambda: rubber(
+        B.Ellipsoid(semi_axes=(1.0, 1.5, 2.2), offset=(0.1, -0.2, 0.3)),
+        (2.0, 2.0, 2.0),
+        B.spherical_inertia_measure,
+        ENERGY,
+        3,
+        mass=1.3,
+    ),
     # S2 (3.8)–(3.9), Table 1
     "ellipsoid (3.8)": lambda: rubber(B.Ellipsoid(semi_axes=A_38), I_38, B.ellipsoid_measure, ENERGY, 4, mass=M_38),
     # S2 (4.3)–(4.4): κ = 1/(1 + kR), ρ = (γ, J⁻¹γ)^{1/(2κ)}, outside and inside a sphere (Fig. 14 inertia)
-    "ball on a sphere kR=0.5": lambda: rubber(B.Sphere(radius=1.0), (1.0, 5.0, 7.0), B.balanced_ball_measure,
-                                              ENERGY, 5, curvature=0.5),
-    "ball in a sphere kR=-0.4": lambda: rubber(B.Sphere(radius=1.0), (1.0, 5.0, 7.0), B.balanced_ball_measure,
-                                               ENERGY, 5, curvature=-0.4),
+    "ball on a sphere kR=0.5": lambda: rubber(
+        B.Sphere(radius=1.0), (1.0, 5.0, 7.0), B.balanced_ball_measure, ENERGY, 5, curvature=0.5
+    ),
+    "ball in a sphere kR=-0.4": lambda: rubber(
+        B.Sphere(radius=1.0), (1.0, 5.0, 7.0), B.balanced_ball_measure, ENERGY, 5, curvature=-0.4
+    ),
     # S2 §4.3, Fig. 2c: cavity R = 2a over a sphere of radius a (κ = −1): the extra integral
-    "cavity at κ=-1": lambda: rubber(B.SphericalCavity(radius=1.0), (1.0, 5.0, 7.0), B.balanced_ball_measure,
-                                     ENERGY | {"F": B.ball_in_cavity_integral}, 6, curvature=2.0),
+    "cavity at κ=-1": lambda: rubber(
+        B.SphericalCavity(radius=1.0),
+        (1.0, 5.0, 7.0),
+        B.balanced_ball_measure,
+        ENERGY | {"F": B.ball_in_cavity_integral},
+        6,
+        curvature=2.0,
+    ),
     # S2 (4.6)–(4.7)
     "flat base z=0": lambda: flat_base("z=0"),
     "flat base I1=I2": lambda: flat_base("symmetric"),
@@ -171,19 +214,28 @@ def test_catalogue_integrals_kept_over_t_100(name):
 def test_ellipsoid_condition_3_8_and_its_refusal():
     """(3.9) lands on the hyperboloid (3.8); an inertia off it is refused by the measure."""
     a2, (i1, i2, i3), m = np.asarray(A_38) ** 2, np.asarray(I_38), M_38
-    cond = (a2[1] - a2[2]) * (m * a2[0] * i1 - i2 * i3) + (a2[2] - a2[0]) * (m * a2[1] * i2 - i1 * i3) + (
-        a2[0] - a2[1]
-    ) * (m * a2[2] * i3 - i1 * i2)
+    cond = (
+        (a2[1] - a2[2]) * (m * a2[0] * i1 - i2 * i3)
+        + (a2[2] - a2[0]) * (m * a2[1] * i2 - i1 * i3)
+        + (a2[0] - a2[1]) * (m * a2[2] * i3 - i1 * i2)
+    )
     assert abs(cond) < 1e-12 * m * np.max(a2) * np.max(np.asarray(I_38)) ** 2
-    off = RollingBody(body=B.RigidBody(mass=m, inertia=I_38 * jnp.array([1.0, 1.1, 1.0]), surface=B.Ellipsoid(semi_axes=A_38)))
+    off = RollingBody(
+        body=B.RigidBody(mass=m, inertia=I_38 * jnp.array([1.0, 1.1, 1.0]), surface=B.Ellipsoid(semi_axes=A_38))
+    )
     with pytest.raises(ValueError, match="hyperboloid"):
         B.ellipsoid_measure(manifold_states(jax.random.key(0), 1)[0], off.params)
 
 
 def test_cavity_integral_only_at_kappa_minus_one():
-    case, other = CASES["cavity at κ=-1"](), rubber(B.SphericalCavity(radius=1.0), (1.0, 5.0, 7.0), None, {}, 6, curvature=3.0)
+    case, other = (
+        CASES["cavity at κ=-1"](),
+        rubber(B.SphericalCavity(radius=1.0), (1.0, 5.0, 7.0), None, {}, 6, curvature=3.0),
+    )
+
     def frozen(y, p):
         return B.ball_in_cavity_integral(y, case["params"])
+
     rate = A.integral_rates(other["field"], {"F": frozen}, case["states"], other["params"])["F"]
     assert float(jnp.max(jnp.abs(rate))) > 1e-2
     with pytest.raises(ValueError, match="κ = −1"):
@@ -201,8 +253,12 @@ def test_flat_base_against_the_printed_4_7():
         m, k, z, (i1, i2, _) = p.mass, p.curvature, p.z, p.inertia
         g3 = (i1 + m * (z**2 + r2**2)) * (i2 + m * (z**2 + r1**2)) - m**2 * r1**2 * r2**2
         s = r1 * w1 + r2 * w2
-        d1 = m * r2 * (m * z**2 + i2) * (w1**2 + w2**2) + m * k * z * s * (w2 * (i2 + m * (z**2 + r1**2)) - m * r1 * r2 * w1)
-        d2 = m * r1 * (m * z**2 + i1) * (w1**2 + w2**2) + m * k * z * s * (w1 * (i1 + m * (z**2 + r2**2)) - m * r1 * r2 * w2)
+        d1 = m * r2 * (m * z**2 + i2) * (w1**2 + w2**2) + m * k * z * s * (
+            w2 * (i2 + m * (z**2 + r1**2)) - m * r1 * r2 * w1
+        )
+        d2 = m * r1 * (m * z**2 + i1) * (w1**2 + w2**2) + m * k * z * s * (
+            w1 * (i1 + m * (z**2 + r2**2)) - m * r1 * r2 * w2
+        )
         return jnp.stack([d1, -d2]) / (k * g3)
 
     ours = jax.vmap(lambda y: scene.vector_field(0.0, y, p)[:2])(states)
@@ -273,8 +329,9 @@ def test_unbalanced_ball_fails_criterion_2_5():
     balanced = RollingBody(body=B.RigidBody(mass=1.0, inertia=(2.6, 1.2, 1.8), surface=B.Sphere(radius=3.0)))
     zero = A.measure_obstruction(balanced.vector_field, gammas, balanced.params)
     assert float(jnp.max(jnp.abs(zero.curl))) < 1e-12
-    expected = jax.vmap(jax.grad(lambda g: jnp.log(B.balanced_ball_measure(jnp.concatenate([jnp.zeros(3), g]),
-                                                                           balanced.params))))(gammas)
+    expected = jax.vmap(
+        jax.grad(lambda g: jnp.log(B.balanced_ball_measure(jnp.concatenate([jnp.zeros(3), g]), balanced.params)))
+    )(gammas)
     expected = expected - jnp.sum(expected * gammas, axis=1, keepdims=True) * gammas
     np.testing.assert_allclose(zero.gradient, expected, atol=1e-12)
 
@@ -300,6 +357,8 @@ def test_chaplygin_sleigh_has_no_invariant_measure():
     # ∫div = −(m a/J) ∫v dt (trapezoid on the saved v as a check of the divergence), and it diverges
     j = p.inertia + p.mass * p.offset**2
     v = np.asarray(flow.ys[..., 0])
-    expected = -float(p.mass * p.offset / j) * np.sum(0.5 * (v[:, 1:] + v[:, :-1]) * np.diff(np.asarray(flow.ts)), axis=1)
+    expected = -float(p.mass * p.offset / j) * np.sum(
+        0.5 * (v[:, 1:] + v[:, :-1]) * np.diff(np.asarray(flow.ts)), axis=1
+    )
     np.testing.assert_allclose(flow.log_volume[:, -1], expected, rtol=1e-4)
     assert bool(jnp.all(flow.log_volume[:, -1] < -50.0))

@@ -19,8 +19,16 @@ def test_stationary_energy_and_uniform_orientation():
     scene = ChaplyginBall(eps=eps, nu=nu, mass=1.0, radius=1.0, inertia_1=0.2, inertia_2=0.4, inertia_3=0.6)
     system = scene.build()
     assert system.additive_noise and system.noise_dim == 3
-    ens = nhsde.simulate(system, scene.initial_state(), jax.random.key(0), n_paths=1024, t1=20.0, dt=0.01,
-                         solver="sra1", save=nhsde.Save(names=("energy", "gamma_3"), n=21, paths=True))
+    ens = nhsde.simulate(
+        system,
+        scene.initial_state(),
+        jax.random.key(0),
+        n_paths=1024,
+        t1=20.0,
+        dt=0.01,
+        solver="sra1",
+        save=nhsde.Save(names=("energy", "gamma_3"), n=21, paths=True),
+    )
     late = np.asarray(ens.paths[:, 10:])
     for values, exact in ((late[..., 0], 3 * nu / (8 * eps)), (late[..., 1] ** 2, 1.0 / 3.0)):
         per_path = values.mean(axis=1)

@@ -44,8 +44,9 @@ def test_body_of_revolution_matches_the_sphere_it_describes():
     """A ball of radius R with the centre of mass c below its centre along e₃ has the profile Z(u) = R − c u."""
     profile = B.BodyOfRevolution(lambda u, s: s[0] - s[1] * u, shape=(1.3, 0.4))
     ball = B.Sphere(radius=1.3, offset=(0.0, 0.0, -0.4))
-    np.testing.assert_allclose(jax.vmap(profile.contact_point)(DIRECTIONS), jax.vmap(ball.contact_point)(DIRECTIONS),
-                               rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(
+        jax.vmap(profile.contact_point)(DIRECTIONS), jax.vmap(ball.contact_point)(DIRECTIONS), rtol=1e-12, atol=1e-12
+    )
     up = jnp.array([0.0, 0.0, 1.0])  # regular through the pole, where Euler angles are singular
     assert bool(jnp.all(jnp.isfinite(jax.jacfwd(jax.jacfwd(profile.contact_point))(up))))
 
@@ -134,10 +135,14 @@ def test_initial_states_off_the_constraints_raise_or_are_projected_with_a_report
 
 def test_catalogue_formulas_refuse_the_wrong_body():
     y = jnp.array([0.0, 1.0, 0.0, 0.0, 0.0, 1.0])
-    unbalanced = RollingBody(body=B.RigidBody(mass=1.0, inertia=(1.0, 2.0, 3.0), surface=B.Sphere(radius=1.0, offset=(0.0, 0.0, 0.3))))
+    unbalanced = RollingBody(
+        body=B.RigidBody(mass=1.0, inertia=(1.0, 2.0, 3.0), surface=B.Sphere(radius=1.0, offset=(0.0, 0.0, 0.3)))
+    )
     with pytest.raises(ValueError, match="balanced ball"):
         B.balanced_ball_measure(y, unbalanced.params)
-    asymmetric = RollingBody(body=B.RigidBody(mass=1.0, inertia=(1.0, 2.0, 3.0), surface=B.Ellipsoid(semi_axes=(1.0, 1.0, 2.0))))
+    asymmetric = RollingBody(
+        body=B.RigidBody(mass=1.0, inertia=(1.0, 2.0, 3.0), surface=B.Ellipsoid(semi_axes=(1.0, 1.0, 2.0)))
+    )
     with pytest.raises(ValueError, match="dynamically symmetric"):
         B.revolution_measure(y, asymmetric.params)
     with pytest.raises(ValueError, match="I = μE"):
@@ -152,8 +157,10 @@ def test_catalogue_formulas_refuse_the_wrong_body():
 def test_rolling_field_is_differentiable_in_the_physical_parameters():
     """The vector field is a pure function of pytree parameters: jax.grad reaches mass, inertia and radius
     (checked against central finite differences)."""
-    scene = RollingBody(body=B.RigidBody(mass=1.3, inertia=(1.0, 2.0, 3.0), surface=B.Sphere(radius=0.9, offset=(0.1, 0.0, 0.2))),
-                        gravity=9.8)
+    scene = RollingBody(
+        body=B.RigidBody(mass=1.3, inertia=(1.0, 2.0, 3.0), surface=B.Sphere(radius=0.9, offset=(0.1, 0.0, 0.2))),
+        gravity=9.8,
+    )
     y = jnp.array([0.3, -0.2, 0.0, 0.0, 0.0, 1.0])
     y = y.at[:3].set(y[:3] - (y[:3] @ y[3:]) * y[3:])
 
@@ -172,8 +179,12 @@ def test_contact_point_drift_of_a_rolling_ball():
     """drift=True keeps α and the contact point: a homogeneous ball rolling about a horizontal axis moves its
     contact point along a straight line at speed R|ω| (classic rolling, S2 (1.4))."""
     radius, w = 0.7, 1.3
-    scene = RollingBody(body=B.RigidBody(mass=1.0, inertia=(0.196, 0.196, 0.196), surface=B.Sphere(radius=radius)),
-                        contact="classic", gravity=9.8, drift=True)
+    scene = RollingBody(
+        body=B.RigidBody(mass=1.0, inertia=(0.196, 0.196, 0.196), surface=B.Sphere(radius=radius)),
+        contact="classic",
+        gravity=9.8,
+        drift=True,
+    )
     assert scene.layout.names[6:] == ("alpha_1", "alpha_2", "alpha_3", "x", "y")
     assert scene.layout.indices("dependent_coordinate") == (9, 10)
     y0 = scene.initial_state([0.0, w, 0.0], [0.0, 0.0, 1.0], alpha=[1.0, 0.0, 0.0])

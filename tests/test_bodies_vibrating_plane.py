@@ -53,8 +53,12 @@ def fokker_planck_residual(system, log_density, y):
 def test_noise_acts_on_omega_through_gamma_only():
     system = scene().build()
     states = random_states(8, key=13)
-    jac, b = jax.jit(jax.vmap(lambda y, p: (jax.jacfwd(system.diffusion, argnums=1)(0.0, y, p),
-                                             system.diffusion(0.0, y, p)), in_axes=(0, None)))(states, system.params)
+    jac, b = jax.jit(
+        jax.vmap(
+            lambda y, p: (jax.jacfwd(system.diffusion, argnums=1)(0.0, y, p), system.diffusion(0.0, y, p)),
+            in_axes=(0, None),
+        )
+    )(states, system.params)
     assert float(jnp.max(jnp.abs(jac[..., :3]))) == 0.0  # b does not depend on ω
     assert float(jnp.max(jnp.abs(b[:, 3:]))) == 0.0  # no noise on γ
 
@@ -62,7 +66,9 @@ def test_noise_acts_on_omega_through_gamma_only():
 def random_states(n, key=0):
     kg, kw = jax.random.split(jax.random.key(key))
     g = jax.random.normal(kg, (n, 3), jnp.float64)
-    return jnp.concatenate([jax.random.normal(kw, (n, 3), jnp.float64), g / jnp.linalg.norm(g, axis=1, keepdims=True)], 1)
+    return jnp.concatenate(
+        [jax.random.normal(kw, (n, 3), jnp.float64), g / jnp.linalg.norm(g, axis=1, keepdims=True)], 1
+    )
 
 
 @partial(jax.jit, static_argnums=0, compiler_options=FAST_COMPILE)
@@ -76,10 +82,13 @@ def fpk_relative_residuals(measure, system, alpha, states):
 
 def s0_measure_with_mean_a(y, q):
     """S0's N(θ) det Ĩ applied to an asymmetric body with A = (I₁ + I₂)/2 (its own Ĩ)."""
-    sym = q.body.replace(inertia=jnp.diag(jnp.stack([0.5 * (q.body.inertia[0, 0] + q.body.inertia[1, 1])] * 2 + [q.body.inertia[2, 2]])))
+    sym = q.body.replace(
+        inertia=jnp.diag(jnp.stack([0.5 * (q.body.inertia[0, 0] + q.body.inertia[1, 1])] * 2 + [q.body.inertia[2, 2]]))
+    )
     r = q.body.surface.contact_point(y[3:6] / jnp.linalg.norm(y[3:6]))
     ratio = jnp.linalg.det(B.contact_inertia(q.body.inertia, q.body.mass, r)) / jnp.linalg.det(
-        B.contact_inertia(sym.inertia, q.body.mass, r))
+        B.contact_inertia(sym.inertia, q.body.mass, r)
+    )
     return revolution_measure_s0(y, q.replace(body=sym)) * ratio
 
 
@@ -96,7 +105,9 @@ def test_statement2_density_solves_the_stationary_fokker_planck_equation():
     assert float(jnp.max(exact)) < 1e-10
     wrong_alpha = fpk_relative_residuals(revolution_measure_s0, system, 1.1 * p.alpha, states)
     assert float(jnp.median(wrong_alpha)) > 1e-2
-    print(f"relative FPK residual: exact {float(jnp.max(exact)):.2g}, α×1.1 median {float(jnp.median(wrong_alpha)):.2g}")
+    print(
+        f"relative FPK residual: exact {float(jnp.max(exact)):.2g}, α×1.1 median {float(jnp.median(wrong_alpha)):.2g}"
+    )
 
 
 def per_path_fractions(theta):
@@ -128,8 +139,16 @@ CRITICAL = stats.chi2.ppf(0.999, len(EDGES) - 2)
 
 
 def run_theta(sc, y0, key, t1=20.0, dt=0.01):
-    ens = nhsde.simulate(sc.build(), y0, jax.random.key(key), n_paths=y0.shape[0], t1=t1, dt=dt, solver="heun",
-                         save=nhsde.Save(names=("theta",), n=int(t1 / 2) + 1, paths=True))
+    ens = nhsde.simulate(
+        sc.build(),
+        y0,
+        jax.random.key(key),
+        n_paths=y0.shape[0],
+        t1=t1,
+        dt=dt,
+        solver="heun",
+        save=nhsde.Save(names=("theta",), n=int(t1 / 2) + 1, paths=True),
+    )
     return np.asarray(ens.paths[..., 0])
 
 
@@ -145,7 +164,8 @@ def test_nutation_marginal_matches_statement2():
 
 
 def test_dynamically_asymmetric_body_has_no_invariant_measure():
-    """Classic rolling of the spheroid with I = (0.2, 0.35, 0.4) or (0.05, 0.6, 0.6): the Liouville equation for any ρ(γ) has a part
+    """Classic rolling of the spheroid with I = (0.2, 0.35, 0.4) or (0.05, 0.6, 0.6): the Liouville equation for
+    any ρ(γ) has a part
     no gradient can cancel (up to 18 % of |∇_ω div v|), so no invariant density exists; zero for I₁ = I₂."""
     gammas = random_states(16, key=12)[:, 3:]
     for body, has_measure in ((ASYMMETRIC, False), (STRONGLY_ASYMMETRIC, False), (scene().params.body, True)):
@@ -188,8 +208,9 @@ def test_contact_normal_marginal_detects_a_body_without_invariant_measure(asymme
     off = float(jnp.median(fpk_relative_residuals(measure, system, system.params.alpha, random_states(32))))
     assert (off > 1e-2) if asymmetric else (off < 1e-12), off  # the candidate law is stationary for the control only
     y0 = sample_stationary(sc.params, jax.random.key(3), 8192, measure=measure)
-    ens = nhsde.simulate(system, y0, jax.random.key(4), n_paths=8192, t1=20.0, dt=0.01, solver="heun",
-                         save=nhsde.Save(n=11, paths=True))
+    ens = nhsde.simulate(
+        system, y0, jax.random.key(4), n_paths=8192, t1=20.0, dt=0.01, solver="heun", save=nhsde.Save(n=11, paths=True)
+    )
     y = np.asarray(ens.paths)
     start = contact_normal_fractions(y[:, :1])
     t2, z = hotelling(contact_normal_fractions(y[:, 5:]) - start + start.mean(0), start.mean(0))
@@ -262,25 +283,42 @@ def test_near_singular_positions_integrate_without_nan():
     """Upright (θ = 0, where Euler angles are singular) and a thin disk rolling on its edge, over t = 100
     (γ² and energy to 1e-8, adaptive Dopri8 at rtol 1e-11).  (The vibrating plane from upright:
     ``test_unit_vector_drift_is_harmless_and_reported``.)"""
-    profile = B.BodyOfRevolution(lambda u, s: jnp.sqrt(s[0] ** 2 * u**2 + s[1] ** 2 * (1 - u**2)) - s[2] * u,
-                                 shape=(0.8, 1.0, 0.2))
-    upright = RollingBody(body=B.RigidBody(mass=1.0, inertia=(0.3, 0.3, 0.5), surface=profile), contact="classic",
-                          gravity=1.0)
-    disk = RollingBody(body=B.RigidBody(mass=1.0, inertia=(0.25, 0.25, 0.5), surface=B.Disk(radius=1.0)),
-                       contact="classic", gravity=1.0)
+    profile = B.BodyOfRevolution(
+        lambda u, s: jnp.sqrt(s[0] ** 2 * u**2 + s[1] ** 2 * (1 - u**2)) - s[2] * u, shape=(0.8, 1.0, 0.2)
+    )
+    upright = RollingBody(
+        body=B.RigidBody(mass=1.0, inertia=(0.3, 0.3, 0.5), surface=profile), contact="classic", gravity=1.0
+    )
+    disk = RollingBody(
+        body=B.RigidBody(mass=1.0, inertia=(0.25, 0.25, 0.5), surface=B.Disk(radius=1.0)),
+        contact="classic",
+        gravity=1.0,
+    )
     cases = [
-        (upright, [upright.initial_state([0.0, 0.0, 3.0], [0.0, 0.0, 1.0]),
-                   upright.initial_state([1e-8, 0.0, 3.0], [1e-9, 0.0, 1.0])]),
-        (disk, [disk.initial_state([0.0, 0.0, 4.0], [1.0, 0.0, 0.0]),
-                disk.initial_state([0.1, 0.0, 4.0], [np.cos(0.05), 0.0, np.sin(0.05)])]),
+        (
+            upright,
+            [
+                upright.initial_state([0.0, 0.0, 3.0], [0.0, 0.0, 1.0]),
+                upright.initial_state([1e-8, 0.0, 3.0], [1e-9, 0.0, 1.0]),
+            ],
+        ),
+        (
+            disk,
+            [
+                disk.initial_state([0.0, 0.0, 4.0], [1.0, 0.0, 0.0]),
+                disk.initial_state([0.1, 0.0, 4.0], [np.cos(0.05), 0.0, np.sin(0.05)]),
+            ],
+        ),
     ]
     for sc, y0 in cases:
         flow = A.solve_flow(sc.vector_field, jnp.stack(y0), sc.params, t1=100.0)
         assert bool(jnp.all(jnp.isfinite(flow.ys)))
         drift = A.integral_drift({"E": B.rolling_energy, "g2": lambda y, p: y[3:6] @ y[3:6]}, flow, sc.params)
         assert float(jnp.max(drift["g2"])) < 1e-8 and float(jnp.max(drift["E"])) < 1e-8
-        print(f"{type(sc.params.body.surface).__name__}: γ² drift {float(jnp.max(drift['g2'])):.2g}, "
-              f"energy drift {float(jnp.max(drift['E'])):.2g} over t = 100")
+        print(
+            f"{type(sc.params.body.surface).__name__}: γ² drift {float(jnp.max(drift['g2'])):.2g}, "
+            f"energy drift {float(jnp.max(drift['E'])):.2g} over t = 100"
+        )
 
 
 @pytest.mark.slow
@@ -303,8 +341,16 @@ def test_euler_heun_bias_of_the_slow_jellett_mode_is_first_order_in_dt():
     system = dataclasses.replace(system, observables=(("J", jellett),))
     growth = {}
     for dt in (0.02, 0.01):
-        ens = nhsde.simulate(system, y0, jax.random.key(15), n_paths=4096, t1=18.0, dt=dt, solver="heun",
-                             save=nhsde.Save(names=("J",), n=2, paths=True))
+        ens = nhsde.simulate(
+            system,
+            y0,
+            jax.random.key(15),
+            n_paths=4096,
+            t1=18.0,
+            dt=dt,
+            solver="heun",
+            save=nhsde.Save(names=("J",), n=2, paths=True),
+        )
         j = np.asarray(ens.paths[..., 0])
         d = j[:, -1] ** 2 - j[:, 0] ** 2
         growth[dt] = (d.mean(), d.std(ddof=1) / np.sqrt(d.size))
@@ -323,8 +369,16 @@ def test_heun2_keeps_the_stationary_angular_velocity_law_where_euler_heun_drifts
     y0 = sample_stationary(sc.params, jax.random.key(3), 8192)
     z = {}
     for solver in ("heun2", "heun"):
-        ens = nhsde.simulate(sc.build(), y0, jax.random.key(4), n_paths=8192, t1=20.0, dt=0.04, solver=solver,
-                             save=nhsde.Save(names=("omega_1", "omega_2", "omega_3"), n=11, paths=True))
+        ens = nhsde.simulate(
+            sc.build(),
+            y0,
+            jax.random.key(4),
+            n_paths=8192,
+            t1=20.0,
+            dt=0.04,
+            solver=solver,
+            save=nhsde.Save(names=("omega_1", "omega_2", "omega_3"), n=11, paths=True),
+        )
         w2 = np.asarray(ens.paths) ** 2
         d = w2[:, 5:].mean(axis=1) - w2[:, 0]
         z[solver] = d.mean(0) / (d.std(0, ddof=1) / np.sqrt(d.shape[0]))

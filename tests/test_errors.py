@@ -113,8 +113,13 @@ def test_failed_paths_raise_by_default():
 
 def test_failed_paths_are_excluded_and_counted():
     ens = sim(
-        system=explosive(), y0=jnp.ones(1, jnp.float32), n_paths=512, t1=1.0, dt=0.01,
-        on_failure="exclude", save=nhsde.Save(paths=True),
+        system=explosive(),
+        y0=jnp.ones(1, jnp.float32),
+        n_paths=512,
+        t1=1.0,
+        dt=0.01,
+        on_failure="exclude",
+        save=nhsde.Save(paths=True),
     )
     failed = np.asarray(ens.failed)
     assert 0 < failed.sum() < 512

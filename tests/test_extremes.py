@@ -46,7 +46,13 @@ def run(eps, nu, dtype, n_paths=4096):
     scene = BallOnVibratingPlane(eps=eps, nu=nu)
     y0 = jnp.array([0.0, 0.0, *U0], dtype)
     return nhsde.simulate(
-        scene.build(), y0, jax.random.key(5), n_paths=n_paths, t1=t1, dt=dt, solver="exponential",
+        scene.build(),
+        y0,
+        jax.random.key(5),
+        n_paths=n_paths,
+        t1=t1,
+        dt=dt,
+        solver="exponential",
         save=nhsde.Save(n=5),
     )
 
@@ -93,13 +99,16 @@ def test_zero_friction_energy_grows_at_the_noise_rate():
     energy = np.sum(np.diagonal(ens.cov, axis1=1, axis2=2)[:, 2:] + ens.mean[:, 2:] ** 2, axis=1)
     ts = np.asarray(ens.ts)
     expected = np.sum(U0**2) + 2 * nu * (1 / 1.4) ** 2 * ts
-    se = np.sqrt(np.sum(np.diagonal(ens.cov_se, axis1=1, axis2=2)[:, 2:] ** 2, axis=1) + 4 * np.sum(
-        (ens.mean[:, 2:] * ens.mean_se[:, 2:]) ** 2, axis=1))
+    se = np.sqrt(
+        np.sum(np.diagonal(ens.cov_se, axis1=1, axis2=2)[:, 2:] ** 2, axis=1)
+        + 4 * np.sum((ens.mean[:, 2:] * ens.mean_se[:, 2:]) ** 2, axis=1)
+    )
     assert np.all(np.abs(energy - expected)[1:] <= 4 * se[1:])
 
 
 def test_gradients_at_zero_noise():
     """∂/∂ε at ν = 0 is the deterministic sensitivity; ∂/∂ν at ν = 0 raises (paths ∝ √ν)."""
+
     def mean_x(eps, nu):
         return run(eps, nu, jnp.float64, n_paths=64).mean[-1, 0]
 
@@ -131,14 +140,32 @@ def test_long_horizon_bounded_memory(dtype):
     # Euler–Maruyama's own stationary variance: σ²h/(1 − (1 − 2εh)²) = σ²/(4ε(1 − εh))
     exact = (1 / 1.4) ** 2 / (4 * (1 - 1.0 * 0.01))
     pooled = np.mean(np.asarray(ens.cov[1:, 0, 0], np.float64))
-    se = np.mean(np.asarray(ens.cov_se[1:, 0, 0], np.float64)) / np.sqrt(10)  # 10 save times ~1000 relaxation times apart
+    se = np.mean(np.asarray(ens.cov_se[1:, 0, 0], np.float64)) / np.sqrt(
+        10
+    )  # 10 save times ~1000 relaxation times apart
     assert abs(pooled - exact) <= 4 * se
 
     def temp_bytes(n_steps):
         cfg = nhsde._simulate._Config(
-            n_paths=64, first_path=0, n_chunks=1, chunk=64, n_steps=n_steps, n_save=11, t0=0.0, t1=n_steps * 0.01,
-            substeps=1, names=system.layout.names, solver="euler", adaptive=False, rtol=1e-3, atol=1e-3,
-            max_steps=1, keep_paths=False, per_path_y0=False, progress=False, devices=tuple(jax.devices()[:1]),
+            n_paths=64,
+            first_path=0,
+            n_chunks=1,
+            chunk=64,
+            n_steps=n_steps,
+            n_save=11,
+            t0=0.0,
+            t1=n_steps * 0.01,
+            substeps=1,
+            names=system.layout.names,
+            solver="euler",
+            adaptive=False,
+            rtol=1e-3,
+            atol=1e-3,
+            max_steps=1,
+            keep_paths=False,
+            per_path_y0=False,
+            progress=False,
+            devices=tuple(jax.devices()[:1]),
             checkpoint=True,
         )
         compiled = jax.jit(lambda y: _run(system, y, jax.random.key(0), cfg)).lower(y0).compile()

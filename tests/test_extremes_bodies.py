@@ -86,8 +86,10 @@ def test_upright_body_of_revolution_deterministic():
             assert np.max(theta[1::2]) < 10 * TH, np.max(theta[1::2], axis=1)
         else:  # the slow spinner falls; the fast one sleeps (measured θ ≤ 1.7e-8)
             assert np.max(theta[3]) > 0.5, np.max(theta[3])
-        print(f"{'stable' if stable else 'unstable'} upright: max θ from 1e-8 = {np.max(theta[1::2], axis=1)}, "
-              f"energy drift {np.asarray(drift['E'])}, γ² drift {np.asarray(drift['g2'])} over t = {t1:g}")
+        print(
+            f"{'stable' if stable else 'unstable'} upright: max θ from 1e-8 = {np.max(theta[1::2], axis=1)}, "
+            f"energy drift {np.asarray(drift['E'])}, γ² drift {np.asarray(drift['g2'])} over t = {t1:g}"
+        )
 
 
 @pytest.mark.slow
@@ -95,14 +97,23 @@ def test_upright_rubber_rolling_keeps_the_no_spin_constraint():
     """Rubber rolling over the pole (θ = 0 exactly and 1e-8, ω ⊥ γ), t = 1000: the constraint (ω, γ) = 0, S2's
     integral F₂ = g₁^{1/2}ω₃ (S2 (3.4)), energy and γ² drift ≤ rtol·t."""
     sc = RollingBody(body=SQUAT, contact="rubber", gravity=1.0)
-    y0 = jnp.stack([sc.initial_state([1.0, 0.0, 0.0], tilted(0.0)),
-                    sc.initial_state([np.cos(TH), 0.0, -np.sin(TH)], tilted(TH))])
+    y0 = jnp.stack(
+        [sc.initial_state([1.0, 0.0, 0.0], tilted(0.0)), sc.initial_state([np.cos(TH), 0.0, -np.sin(TH)], tilted(TH))]
+    )
     t1 = 1000.0
     flow = A.solve_flow(sc.vector_field, y0, sc.params, t1=t1, n_save=201, rtol=RTOL)
     assert bool(jnp.all(jnp.isfinite(flow.ys)))
     assert np.max(nutation(np.asarray(flow.ys))) > 0.5  # it rolls far from upright and back
-    drift = A.integral_drift({"E": B.rolling_energy, "g2": lambda y, p: y[3:6] @ y[3:6],
-                              "no_spin": lambda y, p: y[:3] @ y[3:6], "F2": B.revolution_integral}, flow, sc.params)
+    drift = A.integral_drift(
+        {
+            "E": B.rolling_energy,
+            "g2": lambda y, p: y[3:6] @ y[3:6],
+            "no_spin": lambda y, p: y[:3] @ y[3:6],
+            "F2": B.revolution_integral,
+        },
+        flow,
+        sc.params,
+    )
     for name, d in drift.items():
         assert float(jnp.max(d)) <= RTOL * t1, (name, d)
     print("rubber rolling over the pole, t = 1000:", {k: float(jnp.max(v)) for k, v in drift.items()})
@@ -122,8 +133,17 @@ def norm_drift(sc, y0, key, h, t1, brownian_dt=None):
     """Euler–Heun at step h, 201 saved states: no failure, no NaN, and ln|γ(t1)|² = h∫|n × ω|²dt (ensemble
     means, to 5 %: the trapezoid over the saved states is the only approximation).  Returns the paths and
     ln|γ(t1)|² per path."""
-    ens = nhsde.simulate(sc.build(), y0, jax.random.key(key), n_paths=y0.shape[0], t1=t1, dt=h, solver="heun",
-                         brownian_dt=brownian_dt, save=nhsde.Save(n=201, paths=True))
+    ens = nhsde.simulate(
+        sc.build(),
+        y0,
+        jax.random.key(key),
+        n_paths=y0.shape[0],
+        t1=t1,
+        dt=h,
+        solver="heun",
+        brownian_dt=brownian_dt,
+        save=nhsde.Save(n=201, paths=True),
+    )
     assert int(ens.n_failed) == 0 and bool(jnp.all(jnp.isfinite(ens.paths)))
     law, predicted = log_norm_law(ens, h)
     assert abs(law.mean() / predicted.mean() - 1) < 0.05, (law.mean(), predicted.mean())
@@ -144,8 +164,10 @@ def test_upright_body_on_the_vibrating_plane():
     unit-vector drift ln|γ|² = h∫|n × ω|²dt (to 5 %)."""
     sc = BodyOnVibratingPlane(body=SQUAT, **UPRIGHT_ON_PLANE)
     _, law = norm_drift(sc, upright_states(128), 21, 0.01, 20.0)
-    print(f"upright on the vibrating plane: | |γ(20)| − 1 | mean {np.mean(np.expm1(law / 2)):.3g}, "
-          f"max {np.max(np.expm1(law / 2)):.3g} (h = 0.01)")
+    print(
+        f"upright on the vibrating plane: | |γ(20)| − 1 | mean {np.mean(np.expm1(law / 2)):.3g}, "
+        f"max {np.max(np.expm1(law / 2)):.3g} (h = 0.01)"
+    )
 
 
 @pytest.mark.slow
@@ -164,9 +186,13 @@ def test_disk_on_its_edge():
     slightly tilted and rolling, energy and γ² drift ≤ rtol·t.  Flat (γ = ±e₃, or within 1e-6 of it)
     is refused: the contact is a face, not a point."""
     sc = RollingBody(body=DISK, contact="classic", gravity=1.0)
-    y0 = jnp.stack([sc.initial_state([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]),
-                    sc.initial_state([0.0, 0.0, 4.0], [1.0, 0.0, 0.0]),
-                    sc.initial_state([0.1, 0.0, 4.0], tilted(np.pi / 2 - 0.05))])
+    y0 = jnp.stack(
+        [
+            sc.initial_state([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]),
+            sc.initial_state([0.0, 0.0, 4.0], [1.0, 0.0, 0.0]),
+            sc.initial_state([0.1, 0.0, 4.0], tilted(np.pi / 2 - 0.05)),
+        ]
+    )
     t1 = 1000.0
     flow = A.solve_flow(sc.vector_field, y0, sc.params, t1=t1, n_save=201, rtol=RTOL)
     ys = np.asarray(flow.ys)
@@ -177,7 +203,9 @@ def test_disk_on_its_edge():
     drift = A.integral_drift({"E": B.rolling_energy, "g2": lambda y, p: y[3:6] @ y[3:6]}, flow, sc.params)
     scale = np.maximum(1.0, np.abs(np.asarray(jax.vmap(B.rolling_energy, in_axes=(0, None))(y0, sc.params))))
     assert np.all(np.asarray(drift["E"]) <= RTOL * t1 * scale) and np.all(np.asarray(drift["g2"]) <= RTOL * t1)
-    print(f"disk on its edge over t = {t1:g}: energy drift {np.asarray(drift['E'])}, γ² drift {np.asarray(drift['g2'])}")
+    print(
+        f"disk on its edge over t = {t1:g}: energy drift {np.asarray(drift['E'])}, γ² drift {np.asarray(drift['g2'])}"
+    )
     for gamma in ([0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [1e-7, 0.0, 1.0]):
         with pytest.raises(ValueError, match="the disk lies flat"):
             sc.initial_state([0.0, 0.0, 1.0], gamma)
@@ -195,10 +223,20 @@ def test_disk_on_its_edge_on_the_vibrating_plane():
     assert np.max(tilt) < 0.5
     flat = jnp.broadcast_to(jnp.asarray([0.0, 0.0, 4.0, 0.0, 0.0, 1.0]), (128, 6))
     with pytest.raises(nhsde.SimulationError, match="128 of 128 paths failed"):
-        nhsde.simulate(sc.build(), flat, jax.random.key(22), n_paths=128, t1=10.0, dt=0.01, solver="heun",
-                       save=nhsde.Save(n=201, paths=True))
-    print(f"disk on the vibrating plane: max |γ₃|/|γ| = {np.max(tilt):.3g}, "
-          f"| |γ(10)| − 1 | mean {np.mean(np.expm1(law / 2)):.3g}")
+        nhsde.simulate(
+            sc.build(),
+            flat,
+            jax.random.key(22),
+            n_paths=128,
+            t1=10.0,
+            dt=0.01,
+            solver="heun",
+            save=nhsde.Save(n=201, paths=True),
+        )
+    print(
+        f"disk on the vibrating plane: max |γ₃|/|γ| = {np.max(tilt):.3g}, "
+        f"| |γ(10)| − 1 | mean {np.mean(np.expm1(law / 2)):.3g}"
+    )
 
 
 # ----------------------------------------------------------------------------- Chaplygin's ball: ε, ν extremes
@@ -211,8 +249,13 @@ def chaplygin_run(eps, nu, h=0.01, key=31):
     """1024 paths of Chaplygin's ball from (M₀, γ₀) to t = 5, SRA1 (one compiled program for every ε, ν)."""
     system = ChaplyginBall(eps=eps, nu=nu).build()
     y0 = jnp.asarray(np.concatenate([M0, G0]))
-    return system, y0, nhsde.simulate(system, y0, jax.random.key(key), n_paths=1024, t1=5.0, dt=h, solver="sra1",
-                                      save=nhsde.Save(n=6, paths=True))
+    return (
+        system,
+        y0,
+        nhsde.simulate(
+            system, y0, jax.random.key(key), n_paths=1024, t1=5.0, dt=h, solver="sra1", save=nhsde.Save(n=6, paths=True)
+        ),
+    )
 
 
 def test_chaplygin_ball_without_friction_obeys_ito_identities():
@@ -229,8 +272,10 @@ def test_chaplygin_ball_without_friction_obeys_ito_identities():
     for values, exact in ((m2, m0 @ m0 + 3 * nu * ts), (mg2, (m0 @ g0) ** 2 + nu * ts)):
         se = values.std(axis=0, ddof=1) / np.sqrt(values.shape[0])
         assert np.all(np.abs(values.mean(axis=0) - exact)[1:] <= 4 * se[1:]), (values.mean(axis=0), exact, se)
-    print(f"ε = 0: E|M|²(5) = {m2[:, -1].mean():.3f} (exact {m0 @ m0 + 15 * nu:.3f}), "
-          f"E(M,γ)²(5) = {mg2[:, -1].mean():.3f} (exact {(m0 @ g0) ** 2 + 5 * nu:.3f})")
+    print(
+        f"ε = 0: E|M|²(5) = {m2[:, -1].mean():.3f} (exact {m0 @ m0 + 15 * nu:.3f}), "
+        f"E(M,γ)²(5) = {mg2[:, -1].mean():.3f} (exact {(m0 @ g0) ** 2 + 5 * nu:.3f})"
+    )
 
 
 def test_chaplygin_ball_stiff_friction():
@@ -249,8 +294,16 @@ def test_chaplygin_ball_stiff_friction():
     with pytest.raises(nhsde.SimulationError):
         nhsde.simulate(system, y0, jax.random.key(0), n_paths=64, t1=200 * 4 / rate, dt=4 / rate, solver="euler")
     h = 4e-6
-    ens = nhsde.simulate(system, y0, jax.random.key(32), n_paths=2048, t1=8e-3, dt=h, solver="euler",
-                         save=nhsde.Save(names=("energy",), n=2))
+    ens = nhsde.simulate(
+        system,
+        y0,
+        jax.random.key(32),
+        n_paths=2048,
+        t1=8e-3,
+        dt=h,
+        solver="euler",
+        save=nhsde.Save(names=("energy",), n=2),
+    )
     exact = 3 * nu / (8 * eps)
     value, se = float(ens.mean[-1, 0]), float(ens.mean_se[-1, 0])
     bias = rate * h / (2 - rate * h) * exact  # Euler–Maruyama's stationary variance σ²/(2λ(1 − λh/2)) at rate λ

@@ -18,7 +18,13 @@ def ball_ensemble(key, n_paths, t1=4.0, dt=0.02, n_save=9, solver="sra1"):
     """Synthetic observations of (x, u_x); SRA1's weak error at dt = 0.02 is far below the Monte-Carlo error."""
     system = BallOnVibratingPlane(eps=BALL_EPS, nu=BALL_NU).build()
     return nhsde.simulate(
-        system, jnp.zeros(4), key, n_paths=n_paths, t1=t1, dt=dt, solver=solver,
+        system,
+        jnp.zeros(4),
+        key,
+        n_paths=n_paths,
+        t1=t1,
+        dt=dt,
+        solver=solver,
         save=nhsde.Save(names=NAMES, n=n_save, paths=True),
     )
 
@@ -70,8 +76,13 @@ def test_sleigh_fit_through_simulation_recovers_eps_and_nu():
     eps, nu = 0.5, 0.8
     y0 = jnp.array([1.0, 0.5])
     data = nhsde.simulate(
-        ChaplyginSleigh(eps=eps, nu=nu, drift=False).build(), y0, jax.random.key(21), n_paths=2048, t1=3.0,
-        dt=0.02, save=nhsde.Save(n=7, paths=True),
+        ChaplyginSleigh(eps=eps, nu=nu, drift=False).build(),
+        y0,
+        jax.random.key(21),
+        n_paths=2048,
+        t1=3.0,
+        dt=0.02,
+        save=nhsde.Save(n=7, paths=True),
     )
     observed = fit.Observations.from_paths(data.ts[1:], data.paths[:, 1:], ("v", "omega"))
     start = ChaplyginSleigh(eps=0.2, nu=0.3, drift=False).build()
@@ -118,9 +129,7 @@ def test_statistic_covariance_agrees_with_simulate_standard_errors():
 def test_single_statistic_fit_is_the_analytic_estimate():
     """One measured k_xx(t) and ν alone: ν̂ = ν₀ k̂/k(t; ν₀) exactly, se(ν̂) = ν₀ se(k̂)/k(t; ν₀)."""
     t, k_hat, k_se = 3.0, 2.7, 0.11
-    observed = fit.Observations.from_statistics(
-        [t], ("x",), [[0.0]], [[[k_hat]]], [[0.05]], [[[k_se]]], n_paths=1000
-    )
+    observed = fit.Observations.from_statistics([t], ("x",), [[0.0]], [[[k_hat]]], [[0.05]], [[[k_se]]], n_paths=1000)
     start = BallOnVibratingPlane(eps=BALL_EPS, nu=0.4).build()
     result = fit.estimate(start, observed, fit.ClosedForm(closed_form_of(0)), vary=("nu",))
     k_unit = float(ball_covariances(t, BALL_EPS, 1.0, 1 / 1.4)[0])
@@ -142,7 +151,9 @@ def test_bad_input_is_named():
         fit.Observations.from_paths(np.r_[0.0, ts], np.concatenate([np.zeros((256, 1, 2)), paths], 1), NAMES)
     with pytest.raises(ValueError, match="paths cannot estimate"):
         fit.Observations.from_paths(ts, paths[:10], NAMES)
-    with pytest.raises(ValueError, match="Simulated: observation times \\[1.0, 2.5\\] are not on an equally spaced grid"):
+    with pytest.raises(
+        ValueError, match="Simulated: observation times \\[1.0, 2.5\\] are not on an equally spaced grid"
+    ):
         bad = fit.Observations.from_paths(np.array([1.0, 2.5]), paths, NAMES)
         fit.estimate(system, bad, fit.Simulated(jnp.zeros(4), jax.random.key(0), n_paths=64, dt=0.5))
     with pytest.raises(ValueError, match="do not determine \\('eps', 'nu'\\) separately"):

@@ -35,8 +35,16 @@ def test_one_dimensional_stationary_density_three_routes():
     assert 3.0 < errors[0] / errors[1] < 5.0, errors  # O(h²)
 
     n_paths = 4096
-    ens = nhsde.simulate(system, jnp.zeros(1), jax.random.key(8), n_paths=n_paths, t1=10.0, dt=0.01,
-                         solver="sra1", save=nhsde.Save(n=2, paths=True))
+    ens = nhsde.simulate(
+        system,
+        jnp.zeros(1),
+        jax.random.key(8),
+        n_paths=n_paths,
+        t1=10.0,
+        dt=0.01,
+        solver="sra1",
+        save=nhsde.Save(n=2, paths=True),
+    )
     p = np.asarray(ens.paths[:, -1, 0])
     edges = np.linspace(-3.0, 3.0, 13)
     prob = np.asarray(grid.cell_probabilities(edges))
@@ -87,8 +95,16 @@ def test_sleigh_velocities_stationary_density_against_monte_carlo():
     """Nonlinear, no closed form (no invariant measure): the grid's stationary moments of (v, ω) against Monte Carlo."""
     scene = ChaplyginSleigh(eps=0.5, nu=1.0, drift=False)
     grid = stationary_fokker_planck(scene.build(), [(-3.0, 5.0), (-3.0, 3.0)], [100, 80]).moments()
-    ens = nhsde.simulate(scene.build(), scene.initial_state().astype(jnp.float64), jax.random.key(9), n_paths=2048,
-                         t1=10.0, dt=0.02, solver="sra1", save=nhsde.Save(n=6))
+    ens = nhsde.simulate(
+        scene.build(),
+        scene.initial_state().astype(jnp.float64),
+        jax.random.key(9),
+        n_paths=2048,
+        t1=10.0,
+        dt=0.02,
+        solver="sra1",
+        save=nhsde.Save(n=6),
+    )
     mc = stationary_moments(ens, t_from=6.0)
     assert np.all(np.abs(np.asarray(grid.mean - mc.mean)) <= 4 * np.asarray(ens.mean_se[-1])), (grid.mean, mc.mean)
     assert np.all(np.abs(np.asarray(grid.cov - mc.cov)) <= 4 * np.asarray(ens.cov_se[-1])), (grid.cov, mc.cov)
@@ -108,8 +124,12 @@ def test_bad_input_is_refused():
     with pytest.raises(ValueError, match=r"n=2: need at least 3 cells"):
         stationary_fokker_planck(ball, [(-1, 1), (-1, 1)], [2, 10])
     forced = StochasticSystem(
-        drift_fn=lambda t, y, p: -y + jnp.sin(t), diffusion_fn=lambda t, y, p: jnp.ones((1, 1), y.dtype), params={},
-        layout=StateLayout(("u",), ("velocity",)), noise_dim=1, additive_noise=True,
+        drift_fn=lambda t, y, p: -y + jnp.sin(t),
+        diffusion_fn=lambda t, y, p: jnp.ones((1, 1), y.dtype),
+        params={},
+        layout=StateLayout(("u",), ("velocity",)),
+        noise_dim=1,
+        additive_noise=True,
     )
     with pytest.raises(ValueError, match=r"time-independent drift and diffusion"):
         stationary_fokker_planck(forced, [(-1, 1)], [10])

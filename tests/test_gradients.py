@@ -15,7 +15,12 @@ T1, DT, N = 2.0, 0.004, 4096
 def ensemble(eps, nu, dtype, paths=False):
     scene = BallOnVibratingPlane(eps=eps, nu=nu)
     return nhsde.simulate(
-        scene.build(), scene.initial_state().astype(dtype), KEY, n_paths=N, t1=T1, dt=DT,
+        scene.build(),
+        scene.initial_state().astype(dtype),
+        KEY,
+        n_paths=N,
+        t1=T1,
+        dt=DT,
         save=nhsde.Save(names=("x",), n=3, paths=paths),
     )
 
@@ -42,7 +47,8 @@ def test_gradient_matches_analytic_within_monte_carlo_error(dtype):
         tangent = (1.0, 0.0) if arg == 0 else (0.0, 1.0)
         x, xdot = jax.jvp(
             lambda e, n: ensemble(e, n, dtype, paths=True).paths[:, :, 0],
-            (eps, nu), tuple(jnp.asarray(v, dtype) for v in tangent),
+            (eps, nu),
+            tuple(jnp.asarray(v, dtype) for v in tangent),
         )
         x, xdot = np.asarray(x, np.float64), np.asarray(xdot, np.float64)
         xc, xdc = x - x.mean(0), xdot - xdot.mean(0)

@@ -36,8 +36,15 @@ def solve(form, y0, ts, extra=None):
 
     z0 = y0 if extra is None else jnp.concatenate([y0, jnp.zeros(1)])
     sol = dfx.diffeqsolve(
-        dfx.ODETerm(field), dfx.Dopri8(), ts[0], ts[-1], 1e-3, z0, saveat=dfx.SaveAt(ts=ts),
-        stepsize_controller=dfx.PIDController(rtol=RTOL, atol=RTOL), max_steps=200_000,
+        dfx.ODETerm(field),
+        dfx.Dopri8(),
+        ts[0],
+        ts[-1],
+        1e-3,
+        z0,
+        saveat=dfx.SaveAt(ts=ts),
+        stepsize_controller=dfx.PIDController(rtol=RTOL, atol=RTOL),
+        max_steps=200_000,
     )
     return sol.ys
 
@@ -81,9 +88,14 @@ def test_sleigh_closed_form(route):
         q, qd = physical(form, ts, eqx.filter_jit(solve)(form, y0, ts))
         v = np.cos(q[:, 2]) * qd[:, 0] + np.sin(q[:, 2]) * qd[:, 1]
         w = np.asarray(qd[:, 2])
-        err = max(np.max(np.abs(v - big_v * np.tanh(s))), np.max(np.abs(w - sign * np.sqrt(m / j) * big_v / np.cosh(s))))
+        err = max(
+            np.max(np.abs(v - big_v * np.tanh(s))), np.max(np.abs(w - sign * np.sqrt(m / j) * big_v / np.cosh(s)))
+        )
         e = 0.5 * (m * v**2 + j * w**2)
-        print(f"sleigh {route} sign {sign:+.0f}: max error of (v, ω) {err:.2e}, energy drift {np.max(np.abs(e - energy)):.2e}")
+        print(
+            f"sleigh {route} sign {sign:+.0f}: max error of (v, ω) {err:.2e}, energy drift "
+            f"{np.max(np.abs(e - energy)):.2e}"
+        )
         assert err < 1e-8
         assert np.max(np.abs(e - energy)) < 1e-10
         assert np.max(np.abs(-np.sin(q[:, 2]) * qd[:, 0] + np.cos(q[:, 2]) * qd[:, 1])) < 1e-9  # knife constraint
@@ -99,13 +111,26 @@ def _disk_exact(ts):
     _, r, w_theta, w_phi = DISK.values()
     phi = 0.5 + w_phi * ts
     rho = r * w_theta / w_phi
-    q = jnp.stack([0.3 + rho * (jnp.sin(phi) - np.sin(0.5)), -0.2 - rho * (jnp.cos(phi) - np.cos(0.5)), 0.1 + w_theta * ts, phi], 1)
-    qd = jnp.stack([r * w_theta * jnp.cos(phi), r * w_theta * jnp.sin(phi), jnp.full_like(phi, w_theta), jnp.full_like(phi, w_phi)], 1)
+    q = jnp.stack(
+        [0.3 + rho * (jnp.sin(phi) - np.sin(0.5)), -0.2 - rho * (jnp.cos(phi) - np.cos(0.5)), 0.1 + w_theta * ts, phi],
+        1,
+    )
+    qd = jnp.stack(
+        [
+            r * w_theta * jnp.cos(phi),
+            r * w_theta * jnp.sin(phi),
+            jnp.full_like(phi, w_theta),
+            jnp.full_like(phi, w_phi),
+        ],
+        1,
+    )
     return q, qd
 
 
 def _disk_spec():
-    return VerticalRollingDisk(eps=0.0, nu=0.0, mass=DISK["mass"], radius=DISK["radius"], roll_inertia=0.4, turn_inertia=0.3).spec()
+    return VerticalRollingDisk(
+        eps=0.0, nu=0.0, mass=DISK["mass"], radius=DISK["radius"], roll_inertia=0.4, turn_inertia=0.3
+    ).spec()
 
 
 @pytest.mark.parametrize("route", ROUTES_FAST_FIRST)
@@ -133,7 +158,10 @@ def test_disk_multipliers():
     assert float(jnp.max(jnp.abs(lam - exact_lam))) < 1e-12
     reactions = batched(multipliers, "reactions", exact_q, exact_qd)
     np.testing.assert_allclose(reactions[:, :2], exact_lam, atol=1e-12)  # the contact force on the centre
-    assert float(jnp.max(jnp.abs(reactions[:, 2] + r * (jnp.cos(phi) * exact_lam[:, 0] + jnp.sin(phi) * exact_lam[:, 1])))) < 1e-12
+    assert (
+        float(jnp.max(jnp.abs(reactions[:, 2] + r * (jnp.cos(phi) * exact_lam[:, 0] + jnp.sin(phi) * exact_lam[:, 1]))))
+        < 1e-12
+    )
 
 
 # --------------------------------------------------------------------------- contact oscillator
@@ -146,14 +174,22 @@ def _oscillator_drift_rates(t1, routes, rate=0.0):
     ts = jnp.linspace(0.0, t1, 11)
     rates = {}
     for route in routes:
-        form = mech.formulate(spec, route, dependent=("x",), stabilization=rate if route in ("multipliers", "gauss") else 0.0)
+        form = mech.formulate(
+            spec, route, dependent=("x",), stabilization=rate if route in ("multipliers", "gauss") else 0.0
+        )
         q, qd = physical(form, ts, eqx.filter_jit(solve)(form, form.state(q0, qd0), ts))
         h = 0.5 * jnp.sum(qd**2, 1) + 0.5 * (q[:, 0] ** 2 + q[:, 1] ** 2)
         h_y = 0.5 * (q[:, 1] ** 2 + qd[:, 1] ** 2)
         residual = jnp.abs(qd[:, 0] + q[:, 1] * qd[:, 2])
-        rates[route] = (float(jnp.max(jnp.abs(h - h[0])) / t1), float(jnp.max(jnp.abs(h_y - h_y[0])) / t1), float(jnp.max(residual)))
-        print(f"contact oscillator {route} (κ = {rate:g}), t ≤ {t1:g}: max |ΔH|/t = {rates[route][0]:.2e}, "
-              f"max |ΔH_y|/t = {rates[route][1]:.2e}, max |ẋ + y ż| = {rates[route][2]:.2e}")
+        rates[route] = (
+            float(jnp.max(jnp.abs(h - h[0])) / t1),
+            float(jnp.max(jnp.abs(h_y - h_y[0])) / t1),
+            float(jnp.max(residual)),
+        )
+        print(
+            f"contact oscillator {route} (κ = {rate:g}), t ≤ {t1:g}: max |ΔH|/t = {rates[route][0]:.2e}, "
+            f"max |ΔH_y|/t = {rates[route][1]:.2e}, max |ẋ + y ż| = {rates[route][2]:.2e}"
+        )
     return rates
 
 
@@ -227,7 +263,9 @@ def test_beghin_servo_torque_is_the_control_of_kirgetovs_equation():
     )
     assert float(jnp.max(jnp.abs(mu - u))) < 1e-12
     assert float(jnp.max(jnp.abs(u))) > 0.1
-    contact = mech.formulate(BeghinPlate(realisation="contact", eps=0.0, nu=0.0).spec(), "reduced", dependent=("alpha",))
+    contact = mech.formulate(
+        BeghinPlate(realisation="contact", eps=0.0, nu=0.0).spec(), "reduced", dependent=("alpha",)
+    )
     assert float(jnp.min(jnp.abs(batched(contact, "accelerations", qs, vs)[:, 1] - acc))) > 0  # the two differ
 
 
@@ -279,11 +317,18 @@ def test_constraint_residual_reduced_at_round_off_multipliers_bounded():
     q0, qd0 = scene.configuration()
     kw = {"n_paths": 64, "t1": 10.0, "dt": 0.01, "save": nhsde.Save(names=("constraint_residual",), n=11)}
     report = {}
-    for label, route, rate in (("reduced", "reduced", 0.0), ("multipliers κ=0", "multipliers", 0.0), ("multipliers κ=10", "multipliers", 10.0)):
+    for label, route, rate in (
+        ("reduced", "reduced", 0.0),
+        ("multipliers κ=0", "multipliers", 0.0),
+        ("multipliers κ=10", "multipliers", 10.0),
+    ):
         form = mech.formulate(spec, route, dependent=("x", "y"), stabilization=rate)
         ens = nhsde.simulate(form.system(), form.state(q0, qd0), jax.random.key(4), **kw)
         report[label] = np.asarray(ens.mean[:, 0])
-        print(f"mean over paths of |A q̇ + A0| ({label}) at t = 0, 1, …, 10: {np.array2string(report[label], formatter={'float_kind': lambda x: f'{x:.1e}'})}")
+        print(
+            f"mean over paths of |A q̇ + A0| ({label}) at t = 0, 1, …, 10: "
+            f"{np.array2string(report[label], formatter={'float_kind': lambda x: f'{x:.1e}'})}"
+        )
     assert np.max(report["reduced"]) < 1e-14
     grow, held = report["multipliers κ=0"], report["multipliers κ=10"]
     assert grow[-1] > 2 * grow[1]  # unstabilised: grows (√10 ≈ 3.2 from t = 1 to 10 for a random walk)

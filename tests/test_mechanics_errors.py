@@ -6,8 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from nhsde import AbstractParameters, parameter
-from nhsde import mechanics as mech
+from nhsde import AbstractParameters, mechanics as mech, parameter
 from nhsde.scenes import BeghinPlate, ContactOscillator, VerticalRollingDisk
 
 

@@ -88,9 +88,15 @@ def test_routes_give_the_same_accelerations_and_noise(name):
         results[route] = both(qs, vs, ts)
     ref_acc, ref_noise = results["multipliers"]
     # the states are on the constraints and the accelerations keep them there: d/dt (A q̇ + A0) = 0 (S1 (1.5))
-    residual, rate = jax.jit(jax.vmap(lambda q, v, a, t: jax.jvp(
-        lambda q, v, t: spec.constraint_residual(q, v, jnp.zeros(0), t, spec.params), (q, v, t), (v, a, jnp.ones(()))
-    )))(qs, vs, results["reduced"][0], ts)
+    residual, rate = jax.jit(
+        jax.vmap(
+            lambda q, v, a, t: jax.jvp(
+                lambda q, v, t: spec.constraint_residual(q, v, jnp.zeros(0), t, spec.params),
+                (q, v, t),
+                (v, a, jnp.ones(())),
+            )
+        )
+    )(qs, vs, results["reduced"][0], ts)
     assert float(jnp.max(jnp.abs(residual))) < 1e-13 and float(jnp.max(jnp.abs(rate))) < 1e-11
     scale = 1.0 + np.max(np.abs(np.asarray(ref_acc)), axis=1, keepdims=True)
     assert np.all(np.isfinite(np.asarray(ref_acc))) and np.max(np.abs(np.asarray(ref_noise))) > 0
@@ -111,7 +117,10 @@ def test_gauss_acceleration_minimises_the_compulsion():
     form = mech.formulate(spec, "gauss")
     released = mech.formulate(
         mech.MechanicalSpec(
-            coordinates=spec.coordinates, params=p, kinetic_energy=spec.kinetic_energy, dissipation=spec.dissipation,
+            coordinates=spec.coordinates,
+            params=p,
+            kinetic_energy=spec.kinetic_energy,
+            dissipation=spec.dissipation,
             noise_force=spec.noise_force,
         ),
         "gauss",

@@ -5,8 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from nhsde import AbstractParameters, parameter
-from nhsde import mechanics as mech
+from nhsde import AbstractParameters, mechanics as mech, parameter
 from nhsde.scenes import ContactOscillator
 
 
@@ -55,7 +54,10 @@ def test_rank_follows_the_brackets_of_the_constraints():
     = 4 − 2 + 2 = 4, so these state-space equations are regular and solvable — and differ from nonholonomic
     mechanics: the reactions act in velocity space too, so q̇ ≠ v (S3 (25))."""
     spec = mech.MechanicalSpec(
-        coordinates=("x", "y", "z"), params=TwoConstraintParameters(), kinetic_energy=_unit_kinetic, constraints=_two_rows
+        coordinates=("x", "y", "z"),
+        params=TwoConstraintParameters(),
+        kinetic_energy=_unit_kinetic,
+        constraints=_two_rows,
     )
     space = mech.state_space(spec, dependent=("x", "y"))
     q, v = (a[0] for a in _point_states(spec, jax.random.key(3), n=1))
@@ -72,8 +74,12 @@ def test_rank_follows_the_brackets_of_the_constraints():
 
 def test_state_space_refuses_random_parameters():
     spec = mech.MechanicalSpec(
-        coordinates=("x", "y", "z"), params=TwoConstraintParameters(), kinetic_energy=_unit_kinetic,
-        constraints=_two_rows, random_parameters=("pi",), random_drift=lambda pi, t, p: -pi,
+        coordinates=("x", "y", "z"),
+        params=TwoConstraintParameters(),
+        kinetic_energy=_unit_kinetic,
+        constraints=_two_rows,
+        random_parameters=("pi",),
+        random_drift=lambda pi, t, p: -pi,
     )
     with pytest.raises(ValueError, match="S3 treats deterministic systems"):
         mech.state_space(spec, dependent=("x", "y"))

@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 
 import nhsde
-from nhsde import AbstractParameters, parameter
-from nhsde import mechanics as mech
+from nhsde import AbstractParameters, mechanics as mech, parameter
 from nhsde.scenes import (
     BallFromLagrangian,
     BallOnVibratingPlane,
@@ -115,9 +114,15 @@ def _filter_diffusion(pi, t, p):
 
 def coloured_ball_spec(**kw):
     return mech.MechanicalSpec(
-        coordinates=("x", "y", "phi_x", "phi_y", "phi_z"), params=ColouredParameters(**kw), kinetic_energy=_ball_kinetic,
-        constraints=_rolling, dissipation=_friction, force=_inertial_force, random_parameters=("pi_x", "pi_y"),
-        random_drift=_filter_drift, random_diffusion=_filter_diffusion,
+        coordinates=("x", "y", "phi_x", "phi_y", "phi_z"),
+        params=ColouredParameters(**kw),
+        kinetic_energy=_ball_kinetic,
+        constraints=_rolling,
+        dissipation=_friction,
+        force=_inertial_force,
+        random_parameters=("pi_x", "pi_y"),
+        random_drift=_filter_drift,
+        random_diffusion=_filter_diffusion,
     )
 
 
@@ -130,7 +135,9 @@ def test_random_parameters_shaping_filter_closed_form():
     assert system.layout.names[:2] == ("pi_x", "pi_y") and system.layout.roles[0] == "random_parameter"
     y0 = form.state(jnp.zeros(5), jnp.zeros(5), pi=jnp.zeros(2))
     t1 = 2.0
-    ens = nhsde.simulate(system, y0, KEY, n_paths=2048, t1=t1, dt=0.002, save=nhsde.Save(names=("pi_x", "x_dot", "x"), n=3))
+    ens = nhsde.simulate(
+        system, y0, KEY, n_paths=2048, t1=t1, dt=0.002, save=nhsde.Save(names=("pi_x", "x_dot", "x"), n=3)
+    )
     delta = 1 / (1 + float(p.kappa))
     a = np.array([[-float(p.alpha), 0, 0], [delta, -2 * float(p.eps), 0], [0, 1, 0]])
     bb = np.diag([float(p.nu), 0.0, 0.0])
@@ -147,7 +154,10 @@ def test_random_parameters_in_independent_routes():
     k = jax.random.split(jax.random.key(2), 3)
     q, pi, raw = jax.random.normal(k[0], (5,)), jax.random.normal(k[1], (2,)), jax.random.normal(k[2], (5,))
     v = mech.project_velocity(spec, q, raw, pi=pi)
-    accs = [eqx.filter_jit(mech.formulate(spec, r, dependent=("x", "y")).accelerations)(q, v, pi=pi) for r in ("reduced", "gauss")]
+    accs = [
+        eqx.filter_jit(mech.formulate(spec, r, dependent=("x", "y")).accelerations)(q, v, pi=pi)
+        for r in ("reduced", "gauss")
+    ]
     for acc in accs[1:]:
         np.testing.assert_allclose(acc, accs[0], rtol=1e-12, atol=1e-13)
     drift = mech.build(spec, "reduced", dependent=("x", "y")).drift(0.0, jnp.concatenate([pi, q, v[2:]]), spec.params)
@@ -160,12 +170,18 @@ def test_random_parameters_in_the_kinetic_energy_are_refused():
 
     with pytest.raises(ValueError, match="Δσ"):
         mech.MechanicalSpec(
-            coordinates=("x", "y"), params=ColouredParameters(), kinetic_energy=kinetic,
-            random_parameters=("pi",), random_drift=lambda pi, t, p: -pi,
+            coordinates=("x", "y"),
+            params=ColouredParameters(),
+            kinetic_energy=kinetic,
+            random_parameters=("pi",),
+            random_drift=lambda pi, t, p: -pi,
         )
     with pytest.raises(ValueError, match="constraints depends on the random parameters"):
         mech.MechanicalSpec(
-            coordinates=("x", "y"), params=ColouredParameters(), kinetic_energy=lambda q, v, pi, t, p: 0.5 * v @ v,
+            coordinates=("x", "y"),
+            params=ColouredParameters(),
+            kinetic_energy=lambda q, v, pi, t, p: 0.5 * v @ v,
             constraints=lambda q, pi, t, p: jnp.stack([jnp.ones(()), pi[0]])[None, :],
-            random_parameters=("pi",), random_drift=lambda pi, t, p: -pi,
+            random_parameters=("pi",),
+            random_drift=lambda pi, t, p: -pi,
         )

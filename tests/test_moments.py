@@ -24,8 +24,9 @@ from nhsde.statistics import (
 def test_ball_moment_equations_reproduce_the_closed_forms(eps):
     nu = 1.7
     scene = BallOnVibratingPlane(eps=eps, nu=nu)
-    ens = normal_approximation(scene.build(), scene.initial_state().astype(jnp.float64), t1=4.0, dt=0.01,
-                               save=nhsde.Save(n=9))
+    ens = normal_approximation(
+        scene.build(), scene.initial_state().astype(jnp.float64), t1=4.0, dt=0.01, save=nhsde.Save(n=9)
+    )
     assert isinstance(ens, nhsde.Ensemble) and ens.solver == "normal-approximation"
     k_xx, k_xu, k_uu = ball_covariances(ens.ts, eps, nu, float(scene.params.delta))
     for (i, j), exact in [((0, 0), k_xx), ((1, 1), k_xx), ((0, 2), k_xu), ((2, 2), k_uu), ((3, 3), k_uu)]:
@@ -43,8 +44,9 @@ def sleigh_statistics(nu, eps=0.1, n_paths=4096):
     y0 = scene.initial_state().astype(jnp.float64)
     save = nhsde.Save(n=4)
     moments = drift_statistics(normal_approximation(scene.build(), y0, t1=3.0, dt=0.02, save=save))
-    mc = drift_statistics(nhsde.simulate(scene.build(), y0, jax.random.key(0), n_paths=n_paths, t1=3.0, dt=0.01,
-                                         solver="sra1", save=save))
+    mc = drift_statistics(
+        nhsde.simulate(scene.build(), y0, jax.random.key(0), n_paths=n_paths, t1=3.0, dt=0.01, solver="sra1", save=save)
+    )
     return moments, mc
 
 
@@ -96,8 +98,15 @@ def test_gradients_of_drift_statistics_by_every_route():
         return ChaplyginSleigh(eps=eps, nu=nu).build()
 
     def mc_paths(eps, nu):
-        ens = nhsde.simulate(system(eps, nu), y0, jax.random.key(4), n_paths=n, t1=t1, dt=dt,
-                             save=nhsde.Save(names=("x", "y"), n=2, paths=True))
+        ens = nhsde.simulate(
+            system(eps, nu),
+            y0,
+            jax.random.key(4),
+            n_paths=n,
+            t1=t1,
+            dt=dt,
+            save=nhsde.Save(names=("x", "y"), n=2, paths=True),
+        )
         return ens.paths[:, -1, :]
 
     def statistics_of(xy):
@@ -148,8 +157,9 @@ def test_stationary_drift_formulas_on_the_ball():
     np.testing.assert_allclose(stat.gain, np.eye(2), atol=1e-15)
     np.testing.assert_allclose(stat.diffusion, g / (8 * eps**2) * np.eye(2), rtol=1e-12, atol=1e-15)
     ts = jnp.linspace(0.0, 4.0, 9)
-    np.testing.assert_allclose(stat.velocity_autocorrelation(ts)[:, 0, 0], g / (4 * eps) * np.exp(-2 * eps * ts),
-                               rtol=1e-12)
+    np.testing.assert_allclose(
+        stat.velocity_autocorrelation(ts)[:, 0, 0], g / (4 * eps) * np.exp(-2 * eps * ts), rtol=1e-12
+    )
     exact = 2 * g / (4 * eps) * (ts / (2 * eps) - (1 - np.exp(-2 * eps * ts)) / (4 * eps**2))
     stats = stat.statistics(ts)
     assert isinstance(stats, DriftStatistics)
@@ -166,8 +176,16 @@ def test_green_kubo_diffusion_is_the_slope_of_the_fluctuation_drift():
     exact = g / (8 * eps**2)
     d_gk = stationary_drift(system, jnp.zeros(4), t_relax=5.0, dt=0.01).diffusion
     np.testing.assert_allclose(d_gk, exact * np.eye(2), rtol=1e-12, atol=1e-15)
-    ens = nhsde.simulate(system, jnp.zeros(4), jax.random.key(2), n_paths=2048, t1=8.0, dt=0.01,
-                         solver="sra1", save=nhsde.Save(n=81, paths=True))
+    ens = nhsde.simulate(
+        system,
+        jnp.zeros(4),
+        jax.random.key(2),
+        n_paths=2048,
+        t1=8.0,
+        dt=0.01,
+        solver="sra1",
+        save=nhsde.Save(n=81, paths=True),
+    )
     slope, slope_se = _slope(ens, t_from=3.0, names=("x", "y"))
     assert np.all(np.abs(slope.mean(0) - exact) <= 4 * slope_se), (slope.mean(0), slope_se)
     np.testing.assert_allclose(np.diag(effective_diffusion(ens, t_from=3.0))[:2], slope.mean(0), rtol=1e-9)
@@ -182,8 +200,16 @@ def test_green_kubo_from_paths_on_the_nonlinear_sleigh():
     paths, compared path by path (their difference has its own standard error)."""
     sleigh = ChaplyginSleigh(eps=0.5, nu=4.0)
     system = sleigh.build()
-    ens = nhsde.simulate(system, sleigh.initial_state().astype(jnp.float64), jax.random.key(0), n_paths=1024,
-                         t1=40.0, dt=0.02, solver="sra1", save=nhsde.Save(n=201, paths=True))
+    ens = nhsde.simulate(
+        system,
+        sleigh.initial_state().astype(jnp.float64),
+        jax.random.key(0),
+        n_paths=1024,
+        t1=40.0,
+        dt=0.02,
+        solver="sra1",
+        save=nhsde.Save(n=201, paths=True),
+    )
     gk = green_kubo(system, ens, t_from=8.0, max_lag=8.0)
     slope, _ = _slope(ens, t_from=8.0, names=("x", "y"))
     per_path_gk = _green_kubo_per_path(system, ens, t_from=8.0, max_lag=8.0)
@@ -215,7 +241,9 @@ def _green_kubo_per_path(system, ens, t_from, max_lag):
     h = ts[1] - ts[0]
     n_lag = round(max_lag / h)
     n_origin = v.shape[1] - n_lag
-    c = np.stack([np.einsum("pnk,pnk->pk", v[:, j : j + n_origin], v[:, :n_origin]) / n_origin for j in range(n_lag + 1)])
+    c = np.stack(
+        [np.einsum("pnk,pnk->pk", v[:, j : j + n_origin], v[:, :n_origin]) / n_origin for j in range(n_lag + 1)]
+    )
     weights = np.full(n_lag + 1, h)
     weights[[0, -1]] = h / 2
     return np.einsum("j,jpk->pk", weights, c)
@@ -224,8 +252,11 @@ def _green_kubo_per_path(system, ens, t_from, max_lag):
 def _free_particle():
     """q̇ = p, ṗ = −2p + V with q an independent coordinate: p is stationary, q is not."""
     return nhsde.StochasticSystem(
-        drift_fn=lambda t, y, p: jnp.stack([y[1], -2 * y[1]]), diffusion_fn=lambda t, y, p: jnp.eye(2, 1, -1, dtype=y.dtype),
-        params={}, layout=nhsde.StateLayout(("q", "p"), ("independent_coordinate", "momentum")), noise_dim=1,
+        drift_fn=lambda t, y, p: jnp.stack([y[1], -2 * y[1]]),
+        diffusion_fn=lambda t, y, p: jnp.eye(2, 1, -1, dtype=y.dtype),
+        params={},
+        layout=nhsde.StateLayout(("q", "p"), ("independent_coordinate", "momentum")),
+        noise_dim=1,
         additive_noise=True,
     )
 
@@ -233,23 +264,56 @@ def _free_particle():
 @pytest.mark.parametrize(
     "call, exc, match",
     [
-        (lambda: stationary_drift(_free_particle(), jnp.zeros(2), t_relax=1.0, dt=0.1), ValueError,
-         r"no stationary regime"),
-        (lambda: normal_approximation(BallOnVibratingPlane().build(), jnp.zeros(4), -jnp.eye(4), t1=1.0, dt=0.1),
-         ValueError, r"cov0 must be a finite, symmetric, positive semi-definite matrix"),
-        (lambda: normal_approximation(BallOnVibratingPlane().build(), jnp.zeros(3), t1=1.0, dt=0.1),
-         ValueError, r"y0 has shape \(3,\); expected \(4,\)"),
-        (lambda: normal_approximation(BallOnVibratingPlane().build(), jnp.zeros(4), t1=1.0, dt=0.1, order=0),
-         ValueError, r"order=0; must be ≥ 1"),
-        (lambda: normal_approximation(BallOnVibratingPlane(angular_velocity=True).build(), jnp.zeros(4), t1=1.0,
-                                      dt=0.1, save=nhsde.Save(names=("omega_x",))),
-         ValueError, r"'omega_x' is not a state component"),
-        (lambda: normal_approximation(BallOnVibratingPlane().build(), jnp.zeros(4), t1=1.0, dt=0.1,
-                                      save=nhsde.Save(paths=True)),
-         ValueError, r"moments only, no paths"),
-        (lambda: green_kubo(BallOnVibratingPlane().build(), nhsde.simulate(
-            BallOnVibratingPlane().build(), jnp.zeros(4), jax.random.key(0), n_paths=64, t1=1.0, dt=0.1), t_from=0.5,
-            max_lag=0.2), ValueError, r"Save\(paths=True\)"),
+        (
+            lambda: stationary_drift(_free_particle(), jnp.zeros(2), t_relax=1.0, dt=0.1),
+            ValueError,
+            r"no stationary regime",
+        ),
+        (
+            lambda: normal_approximation(BallOnVibratingPlane().build(), jnp.zeros(4), -jnp.eye(4), t1=1.0, dt=0.1),
+            ValueError,
+            r"cov0 must be a finite, symmetric, positive semi-definite matrix",
+        ),
+        (
+            lambda: normal_approximation(BallOnVibratingPlane().build(), jnp.zeros(3), t1=1.0, dt=0.1),
+            ValueError,
+            r"y0 has shape \(3,\); expected \(4,\)",
+        ),
+        (
+            lambda: normal_approximation(BallOnVibratingPlane().build(), jnp.zeros(4), t1=1.0, dt=0.1, order=0),
+            ValueError,
+            r"order=0; must be ≥ 1",
+        ),
+        (
+            lambda: normal_approximation(
+                BallOnVibratingPlane(angular_velocity=True).build(),
+                jnp.zeros(4),
+                t1=1.0,
+                dt=0.1,
+                save=nhsde.Save(names=("omega_x",)),
+            ),
+            ValueError,
+            r"'omega_x' is not a state component",
+        ),
+        (
+            lambda: normal_approximation(
+                BallOnVibratingPlane().build(), jnp.zeros(4), t1=1.0, dt=0.1, save=nhsde.Save(paths=True)
+            ),
+            ValueError,
+            r"moments only, no paths",
+        ),
+        (
+            lambda: green_kubo(
+                BallOnVibratingPlane().build(),
+                nhsde.simulate(
+                    BallOnVibratingPlane().build(), jnp.zeros(4), jax.random.key(0), n_paths=64, t1=1.0, dt=0.1
+                ),
+                t_from=0.5,
+                max_lag=0.2,
+            ),
+            ValueError,
+            r"Save\(paths=True\)",
+        ),
     ],
 )
 def test_bad_input_is_refused(call, exc, match):

@@ -38,8 +38,9 @@ def test_coloured_multiplicative_noise_has_the_closed_form_mean_and_the_white_li
     system = with_shaping_filter(gbm(mu, sigma), OrnsteinUhlenbeck(("pi",), rate=gamma))
     assert system.layout.names == ("pi", "x") and system.additive_noise
     y0 = stationary_start(n, gamma / 2, [1.0])
-    ens = nhsde.simulate(system, y0, jax.random.key(0), n_paths=n, t1=t1, dt=2.0**-8, solver="sra1",
-                         save=nhsde.Save(names=("x",), n=2))
+    ens = nhsde.simulate(
+        system, y0, jax.random.key(0), n_paths=n, t1=t1, dt=2.0**-8, solver="sra1", save=nhsde.Save(names=("x",), n=2)
+    )
     exact = math.exp(mu * t1 - sigma**2 * (1 - math.exp(-gamma * t1)) / (2 * gamma))
     assert abs(float(ens.mean[-1, 0]) - exact) <= 4 * float(ens.mean_se[-1, 0])
     # the coloured mean differs from the white one by more than the error here, and the gap closes as γ grows
@@ -76,12 +77,20 @@ def test_coloured_vibration_of_the_ball():
 def test_general_filter_and_its_moments():
     """A general φ, ψ: the filter alone, π̇ = −γπ + σ V as a ShapingFilter, has the OU moments."""
     filt = ShapingFilter(
-        lambda t, pi, p: -p["rate"] * pi, lambda t, pi, p: p["scale"] * jnp.eye(1, dtype=pi.dtype),
-        {"rate": jnp.float64(2.0), "scale": jnp.float64(1.5)}, ("pi",), 1, additive_noise=True,
+        lambda t, pi, p: -p["rate"] * pi,
+        lambda t, pi, p: p["scale"] * jnp.eye(1, dtype=pi.dtype),
+        {"rate": jnp.float64(2.0), "scale": jnp.float64(1.5)},
+        ("pi",),
+        1,
+        additive_noise=True,
     )
     carrier = StochasticSystem(  # ẋ = π: the position driven by the coloured noise
-        drift_fn=lambda t, y, p: jnp.zeros_like(y), diffusion_fn=lambda t, y, p: jnp.ones((1, 1), y.dtype),
-        params={}, layout=StateLayout(("x",), ("dependent_coordinate",)), noise_dim=1, additive_noise=True,
+        drift_fn=lambda t, y, p: jnp.zeros_like(y),
+        diffusion_fn=lambda t, y, p: jnp.ones((1, 1), y.dtype),
+        params={},
+        layout=StateLayout(("x",), ("dependent_coordinate",)),
+        noise_dim=1,
+        additive_noise=True,
     )
     system = with_shaping_filter(carrier, filt)
     ens = normal_approximation(system, jnp.zeros(2), t1=2.0, dt=0.01, save=nhsde.Save(n=3))
@@ -99,8 +108,11 @@ def test_general_filter_and_its_moments():
         (lambda: OrnsteinUhlenbeck("pi"), ValueError, r"names='pi'; expected a non-empty tuple"),
         (lambda: OrnsteinUhlenbeck(("pi",), rate=0.0), ValueError, r"rate=0.0 .*> 0"),
         (lambda: OrnsteinUhlenbeck(("pi",), intensity=-1.0), ValueError, r"intensity=-1.0 .*≥ 0"),
-        (lambda: with_shaping_filter(gbm(), OrnsteinUhlenbeck(("a", "b"))), ValueError,
-         r"filter has 2 outputs \('a', 'b'\) but the system has 1 noise channels"),
+        (
+            lambda: with_shaping_filter(gbm(), OrnsteinUhlenbeck(("a", "b"))),
+            ValueError,
+            r"filter has 2 outputs \('a', 'b'\) but the system has 1 noise channels",
+        ),
         (lambda: with_shaping_filter(gbm(), OrnsteinUhlenbeck(("x",))), ValueError, r"clash"),
         (lambda: with_shaping_filter(gbm(), "ou"), TypeError, r"expected a shaping filter"),
     ],

@@ -24,8 +24,9 @@ def gbm_stratonovich(mu=0.3, sigma=0.8):
 @pytest.mark.parametrize("solver", ["euler", "heun"])
 def test_stratonovich_system_converges_to_the_stratonovich_solution(solver):
     """Euler (Itô) gets the system converted by the ½(∂b/∂Z)b drift correction; Heun (Stratonovich) takes it as is."""
-    ens = nhsde.simulate(gbm_stratonovich(), jnp.array([1.0]), jax.random.key(6), n_paths=4096, t1=1.0,
-                         dt=2.0**-8, solver=solver)
+    ens = nhsde.simulate(
+        gbm_stratonovich(), jnp.array([1.0]), jax.random.key(6), n_paths=4096, t1=1.0, dt=2.0**-8, solver=solver
+    )
     exact, ito = np.exp(0.3 + 0.32), np.exp(0.3)
     err = abs(float(ens.mean[-1, 0]) - exact)
     assert err <= 4 * float(ens.mean_se[-1, 0]), (solver, float(ens.mean[-1, 0]), exact)

@@ -69,7 +69,10 @@ def test_count_truncation_is_explicit_and_enforced():
     for dt in (0.01, 0.1):
         np.testing.assert_allclose(driver.neglected_probability(dt), scipy.stats.poisson.sf(6, 5.0 * dt), rtol=1e-10)
     increments(driver, 1, dt=0.01)  # P(N > 6) ≈ 2e-12·… per step: allowed
-    with pytest.raises((eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError), match=r"more than max_jumps=6 jumps in one step has probability"):
+    with pytest.raises(
+        (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError),
+        match=r"more than max_jumps=6 jumps in one step has probability",
+    ):
         increments(driver, 1, dt=0.1)
 
 
@@ -107,7 +110,12 @@ def test_poisson_ball_is_not_gaussian():
     law, lam, eps, nu, t1 = NormalJumps(std=0.8), 2.0, 1.0, 0.5, 1.0
     scene, system = poisson_ball(CompoundPoisson(law=law, intensity=lam), eps, nu)
     ens = nhsde.simulate(
-        system, scene.initial_state().astype(jnp.float64), jax.random.key(2), n_paths=8192, t1=t1, dt=0.002,
+        system,
+        scene.initial_state().astype(jnp.float64),
+        jax.random.key(2),
+        n_paths=8192,
+        t1=t1,
+        dt=0.002,
         save=nhsde.Save(names=("u_x", "u_y"), n=2, paths=True),
     )
     u = np.asarray(ens.paths[:, -1, :]).reshape(-1)  # the two axes are independent copies
@@ -145,7 +153,11 @@ def test_gradients_through_jump_paths():
         (lambda: ParetoJumps(tail=1.5), ValueError, r"without finite variance"),
         (lambda: NormalJumps(std=-0.1), ValueError, r"std=-0.1 .*≥ 0"),
         (lambda: CompoundPoisson(law=0.5), TypeError, r"law=0.5; expected a jump law"),
-        (lambda: CompoundPoisson(law=NormalJumps(), max_jumps=0), ValueError, r"max_jumps=0; must be a whole number ≥ 1"),
+        (
+            lambda: CompoundPoisson(law=NormalJumps(), max_jumps=0),
+            ValueError,
+            r"max_jumps=0; must be a whole number ≥ 1",
+        ),
         (lambda: Levy(NormalJumps()), TypeError, r"expected nhsde.noise.CompoundPoisson"),
     ],
 )

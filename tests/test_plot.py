@@ -39,8 +39,16 @@ def test_band_spans_the_standard_errors():
 
 def test_drift_curves_of_the_ball_against_the_closed_form(tmp_path):
     scene = BallOnVibratingPlane(eps=0.6)
-    ens = nhsde.simulate(scene.build(), scene.initial_state(), jax.random.key(0), n_paths=256, t1=2.0, dt=0.01,
-                         solver="sra1", save=nhsde.Save(n=11))
+    ens = nhsde.simulate(
+        scene.build(),
+        scene.initial_state(),
+        jax.random.key(0),
+        n_paths=256,
+        t1=2.0,
+        dt=0.01,
+        solver="sra1",
+        save=nhsde.Save(n=11),
+    )
     delta = float(scene.params.delta)
 
     def theory(ts):

@@ -95,8 +95,9 @@ def test_growth_rates_both_senses(scene):
         assert ccw.verdict == cw.verdict == "unstable"
         np.testing.assert_allclose([float(ccw.growth_rate), float(cw.growth_rate)], [ccw_rate, cw_rate], rtol=2e-4)
         assert abs(ccw.roots[0].imag) > 100.0 and abs(cw.roots[0].imag) < 40.0
-        np.testing.assert_allclose(np.sort_complex(np.asarray(cw.roots)), np.sort_complex(-np.asarray(ccw.roots)),
-                                   rtol=1e-10)
+        np.testing.assert_allclose(
+            np.sort_complex(np.asarray(cw.roots)), np.sort_complex(-np.asarray(ccw.roots)), rtol=1e-10
+        )
         # sum of the roots = −a₁/a₀ (S4 Remark 4.3): a₁ < 0 counter-clockwise (unstable whatever the other
         # coefficients), a₁ > 0 clockwise (necessary for stability, not sufficient)
         assert float(jnp.sum(ccw.roots.real)) > 0 > float(jnp.sum(cw.roots.real))
@@ -110,13 +111,15 @@ def test_mirror_image_and_kane_levinson_axes(scene):
     mirror = Rattleback(product=-p["D"])
     inertia = [[p["A"], p["D"], 0.0], [p["D"], p["B"], 0.0], [0.0, 0.0, p["C"]]]
     surface = B.Ellipsoid(semi_axes=(p["a"], p["b"], p["c"]), offset=(0.0, 0.0, p["h"]))
-    kl_axes = RollingBody(body=B.RigidBody(mass=p["m"], inertia=inertia, surface=surface), contact="classic",
-                          gravity=p["g"])
+    kl_axes = RollingBody(
+        body=B.RigidBody(mass=p["m"], inertia=inertia, surface=surface), contact="classic", gravity=p["g"]
+    )
     for n in (2.0, -5.0):
         roots = np.sort_complex(np.asarray(stability(scene, n).roots))
         np.testing.assert_allclose(np.sort_complex(np.asarray(stability(mirror, -n).roots)), roots, rtol=1e-10)
-        kl = linear_stability(kl_axes.vector_field, jnp.array([0.0, 0.0, -n, 0.0, 0.0, -1.0]), kl_axes.params,
-                              n_family=2)
+        kl = linear_stability(
+            kl_axes.vector_field, jnp.array([0.0, 0.0, -n, 0.0, 0.0, -1.0]), kl_axes.params, n_family=2
+        )
         np.testing.assert_allclose(np.sort_complex(np.asarray(kl.roots)), roots, rtol=1e-10)
 
 
@@ -147,8 +150,9 @@ def test_growth_rate_from_nonlinear_flow(scene, n, t1):
     """From a tilt of 1e-8 rad the tilt ``|γ × e₃|`` grows as ``e^{Re μ t}``: the log of its peaks over
     ``[0.4, 0.95]·t₁`` (other mode down by ≥ e^{-5}, amplitude ≤ 5e-3) has slope ``Re μ``."""
     rate = float(stability(scene, n).growth_rate)
-    flow = solve_flow(scene.vector_field, scene.spin(n, 1e-8, 0.7)[None], scene.params, t1=t1, n_save=6001,
-                      rtol=1e-12, atol=1e-14)
+    flow = solve_flow(
+        scene.vector_field, scene.spin(n, 1e-8, 0.7)[None], scene.params, t1=t1, n_save=6001, rtol=1e-12, atol=1e-14
+    )
     ys = np.asarray(flow.ys[0])
     tilt = np.hypot(ys[:, 3], ys[:, 4])
     assert tilt[-1] < 1e-2  # still linear
@@ -182,8 +186,9 @@ def test_spin_reversal(scene):
 def test_repeated_reversals(scene):
     """Without dissipation the clockwise spin is unstable too (slowly): it reverses back (t ≈ 30 s) and again
     (t ≈ 51 s); energy kept to 1e-10 (relative) and ``γ²`` to 1e-11."""
-    flow = solve_flow(scene.vector_field, scene.spin(5.0, 1e-3)[None], scene.params, t1=60.0, n_save=6001,
-                      rtol=1e-12, atol=1e-13)
+    flow = solve_flow(
+        scene.vector_field, scene.spin(5.0, 1e-3)[None], scene.params, t1=60.0, n_save=6001, rtol=1e-12, atol=1e-13
+    )
     ts, spin = np.asarray(flow.ts), vertical_spin(np.asarray(flow.ys[0]))
     crossings = ts[1:][np.diff(np.sign(spin)) != 0]
     assert len(crossings) == 3 and crossings[0] < 4.5 and 25.0 < crossings[1] < 35.0 < crossings[2], crossings

@@ -170,7 +170,12 @@ def test_saved_run_reloads_identically_and_describes_itself(tmp_path):
     # statistics equal simulate's over the same 300 paths (other summation order: rounding only)
     system = nhsde.scenes.BallOnVibratingPlane(eps=0.8, nu=1.5).build()
     ens = nhsde.simulate(
-        system, jnp.zeros(4), jax.random.key(5), n_paths=300, t1=1.0, dt=0.05,
+        system,
+        jnp.zeros(4),
+        jax.random.key(5),
+        n_paths=300,
+        t1=1.0,
+        dt=0.05,
         save=nhsde.Save(names=("x", "u_x"), n=5, paths=True),
     )
     np.testing.assert_array_equal(again["paths"].values, ens.paths)
@@ -232,7 +237,9 @@ def test_killed_process_resumes(tmp_path):
     out = tmp_path / "run.nc"
     proc = subprocess.Popen(
         [sys.executable, "-m", "nhsde._cli", "simulate", "--config", str(cfg), "--no-progress"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
     )
     try:
         deadline = time.monotonic() + 120
@@ -321,7 +328,12 @@ def test_float32_run_keeps_float64_sums(tmp_path):
     assert single["paths"].dtype == np.float32 and single["cov"].dtype == np.float64
     system = nhsde.scenes.BallOnVibratingPlane(eps=0.8, nu=1.5).build()
     ens = nhsde.simulate(
-        system, jnp.zeros(4, jnp.float32), jax.random.key(5), n_paths=128, t1=1.0, dt=0.05,
+        system,
+        jnp.zeros(4, jnp.float32),
+        jax.random.key(5),
+        n_paths=128,
+        t1=1.0,
+        dt=0.05,
         save=nhsde.Save(names=("x", "u_x"), n=5, paths=True),
     )
     np.testing.assert_array_equal(single["paths"].values, ens.paths)

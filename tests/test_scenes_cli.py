@@ -25,7 +25,12 @@ def test_ball_state_holds_only_what_is_asked_for():
 def test_ball_angular_velocity_from_the_rolling_constraint():
     scene = BallOnVibratingPlane(radius=0.5, angular_velocity=True)
     ens = nhsde.simulate(
-        scene.build(), scene.initial_state(), jax.random.key(0), n_paths=64, t1=1.0, dt=0.01,
+        scene.build(),
+        scene.initial_state(),
+        jax.random.key(0),
+        n_paths=64,
+        t1=1.0,
+        dt=0.01,
         save=nhsde.Save(names=("u_x", "u_y", "omega_x", "omega_y"), paths=True),
     )
     u_x, u_y, w_x, w_y = np.moveaxis(np.asarray(ens.paths), -1, 0)
@@ -61,7 +66,13 @@ def test_sleigh_mean_energy_follows_its_balance():
     j = float(p.inertia + p.mass * p.offset**2)
     y0 = jnp.array([1.0, 0.5], jnp.float64)
     ens = nhsde.simulate(
-        scene.build(), y0, jax.random.key(2), n_paths=8192, t1=t1, dt=0.002, solver="sra1",
+        scene.build(),
+        y0,
+        jax.random.key(2),
+        n_paths=8192,
+        t1=t1,
+        dt=0.002,
+        solver="sra1",
         save=nhsde.Save(n=5, paths=True),
     )
     y = np.asarray(ens.paths, np.float64)
@@ -82,8 +93,21 @@ def test_cli_lists_scenes(capsys):
 def test_cli_simulate_prints_and_saves(tmp_path, capsys):
     out_file = tmp_path / "run.npz"
     code = main(
-        ["simulate", "ball-on-vibrating-plane", "--paths", "256", "--t1", "1", "--dt", "0.01",
-         "--set", "eps=2", "--no-progress", "--out", str(out_file)]
+        [
+            "simulate",
+            "ball-on-vibrating-plane",
+            "--paths",
+            "256",
+            "--t1",
+            "1",
+            "--dt",
+            "0.01",
+            "--set",
+            "eps=2",
+            "--no-progress",
+            "--out",
+            str(out_file),
+        ]
     )
     assert code == 0
     text = capsys.readouterr().out
@@ -115,8 +139,10 @@ def test_cli_runs_a_noiseless_scene_and_reports_the_missing_nu_derivative(capsys
     """At ν = 0 paths scale like √ν: d/dν does not exist; the CLI says so (nan) instead of failing.
     The upright disk rolling straight without friction keeps its speed: x(t) = R Ω t."""
     out = tmp_path / "disk.npz"
-    assert main(["simulate", "rolling-disk", "--paths", "64", "--t1", "0.5", "--dt", "0.01", "--x64",
-                 "--out", str(out)]) == 0
+    assert (
+        main(["simulate", "rolling-disk", "--paths", "64", "--t1", "0.5", "--dt", "0.01", "--x64", "--out", str(out)])
+        == 0
+    )
     text = capsys.readouterr().out
     assert "d/d nu is nan: it does not exist at nu = 0" in text
     data = np.load(out)

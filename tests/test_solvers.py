@@ -18,8 +18,15 @@ def strong_slope(system, y0, solver, t1=1.0, n_paths=512):
 
     def final(name, dt):
         ens = nhsde.simulate(
-            system, y0, jax.random.key(3), n_paths=n_paths, t1=t1, dt=dt, solver=name,
-            brownian_dt=fine, save=nhsde.Save(n=2, paths=True),
+            system,
+            y0,
+            jax.random.key(3),
+            n_paths=n_paths,
+            t1=t1,
+            dt=dt,
+            solver=name,
+            brownian_dt=fine,
+            save=nhsde.Save(n=2, paths=True),
         )
         return np.asarray(ens.paths[:, -1])
 
@@ -74,9 +81,7 @@ def test_ito_stratonovich_conversion_is_the_drift_correction():
 @pytest.mark.parametrize("solver", ["euler", "milstein", "heun", "heun2"])
 def test_every_solver_converges_to_the_ito_solution(solver):
     """The Heun solvers are Stratonovich solvers: simulate converts the Itô system before using it."""
-    ens = nhsde.simulate(
-        gbm(), jnp.array([1.0]), jax.random.key(5), n_paths=8192, t1=1.0, dt=2.0**-8, solver=solver
-    )
+    ens = nhsde.simulate(gbm(), jnp.array([1.0]), jax.random.key(5), n_paths=8192, t1=1.0, dt=2.0**-8, solver=solver)
     err = abs(float(ens.mean[-1, 0]) - np.exp(0.3))
     assert err <= 4 * float(ens.mean_se[-1, 0]), (solver, float(ens.mean[-1, 0]), float(ens.mean_se[-1, 0]))
 
@@ -88,8 +93,17 @@ def test_sra1_refuses_state_dependent_noise():
 
 def test_adaptive_steps_match_closed_form():
     ens = nhsde.simulate(
-        BALL.build(), BALL.initial_state().astype(jnp.float64), jax.random.key(4), n_paths=1024, t1=2.0,
-        dt=0.05, solver="sra1", adaptive=True, rtol=1e-3, atol=1e-4, save=nhsde.Save(n=3),
+        BALL.build(),
+        BALL.initial_state().astype(jnp.float64),
+        jax.random.key(4),
+        n_paths=1024,
+        t1=2.0,
+        dt=0.05,
+        solver="sra1",
+        adaptive=True,
+        rtol=1e-3,
+        atol=1e-4,
+        save=nhsde.Save(n=3),
     )
     k_xx, _, k_uu = ball_covariances(ens.ts, 1.0, 1.0, 1 / 1.4)
     assert np.all(np.abs(ens.cov[1:, 0, 0] - k_xx[1:]) <= 4 * ens.cov_se[1:, 0, 0])
@@ -98,8 +112,14 @@ def test_adaptive_steps_match_closed_form():
 
 def run(key=jax.random.key(11), chunk_size=None, n_paths=300, paths=True):
     return nhsde.simulate(
-        BALL.build(), BALL.initial_state(), key, n_paths=n_paths, t1=1.0, dt=0.01,
-        chunk_size=chunk_size, save=nhsde.Save(paths=paths),
+        BALL.build(),
+        BALL.initial_state(),
+        key,
+        n_paths=n_paths,
+        t1=1.0,
+        dt=0.01,
+        chunk_size=chunk_size,
+        save=nhsde.Save(paths=paths),
     )
 
 
@@ -122,8 +142,14 @@ def test_results_independent_of_chunk_size():
     assert np.array_equal(more.paths[:300], ref.paths)
     # and a later piece of the ensemble can be computed on its own
     piece = nhsde.simulate(
-        BALL.build(), BALL.initial_state(), jax.random.key(11), n_paths=300, t1=1.0, dt=0.01,
-        save=nhsde.Save(paths=True), first_path=128,
+        BALL.build(),
+        BALL.initial_state(),
+        jax.random.key(11),
+        n_paths=300,
+        t1=1.0,
+        dt=0.01,
+        save=nhsde.Save(paths=True),
+        first_path=128,
     )
     assert np.array_equal(piece.paths[:172], ref.paths[128:])
 
@@ -146,8 +172,13 @@ def test_progress_bar_runs(capsys):
 def test_standard_errors_match_the_sample_of_paths():
     """mean_se and cov_se agree with the standard errors computed from the saved paths."""
     ens = nhsde.simulate(
-        BALL.build(), BALL.initial_state().astype(jnp.float64), jax.random.key(9), n_paths=4096, t1=3.0,
-        dt=0.01, save=nhsde.Save(n=4, paths=True),
+        BALL.build(),
+        BALL.initial_state().astype(jnp.float64),
+        jax.random.key(9),
+        n_paths=4096,
+        t1=3.0,
+        dt=0.01,
+        save=nhsde.Save(n=4, paths=True),
     )
     y = np.asarray(ens.paths, np.float64)  # (paths, n, k)
     d = y - y.mean(0)

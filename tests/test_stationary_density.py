@@ -1,4 +1,5 @@
-"""Exact stationary densities, S0 Statements 1–2: closed forms, Monte Carlo, moment method; refusals name the condition."""
+"""Exact stationary densities, S0 Statements 1–2: closed forms, Monte Carlo, moment method; refusals name the
+condition."""
 
 import dataclasses
 import math
@@ -29,8 +30,12 @@ def system_of(drift, names, roles, diffusion=None, **params):
         return jnp.zeros((d, 1), y.dtype).at[-1, 0].set(jnp.sqrt(p.nu))
 
     return StochasticSystem(
-        drift_fn=drift, diffusion_fn=diffusion or default_diffusion, params=Friction(**params),
-        layout=StateLayout(names, roles), noise_dim=1 if diffusion is None else d, additive_noise=True,
+        drift_fn=drift,
+        diffusion_fn=diffusion or default_diffusion,
+        params=Friction(**params),
+        layout=StateLayout(names, roles),
+        noise_dim=1 if diffusion is None else d,
+        additive_noise=True,
     )
 
 
@@ -73,10 +78,19 @@ def test_ball_velocity_satisfies_statement_1():
     var = nu * delta**2 / (4 * eps)
     np.testing.assert_allclose(density.moments().cov, var * np.eye(2), rtol=1e-10, atol=1e-14)
     np.testing.assert_allclose(density.log_normaliser, math.log(2 * math.pi * var), rtol=1e-10)
-    np.testing.assert_allclose(density.pdf(jnp.array([[0.3, -0.2]])), np.exp(-(0.09 + 0.04) / (2 * var)) / (2 * np.pi * var),
-                               rtol=1e-10)
-    ens = nhsde.simulate(scene.build(), jnp.zeros(2), jax.random.key(3), n_paths=2048, t1=4.0, dt=0.02,
-                         solver="sra1", save=nhsde.Save(n=5))
+    np.testing.assert_allclose(
+        density.pdf(jnp.array([[0.3, -0.2]])), np.exp(-(0.09 + 0.04) / (2 * var)) / (2 * np.pi * var), rtol=1e-10
+    )
+    ens = nhsde.simulate(
+        scene.build(),
+        jnp.zeros(2),
+        jax.random.key(3),
+        n_paths=2048,
+        t1=4.0,
+        dt=0.02,
+        solver="sra1",
+        save=nhsde.Save(n=5),
+    )
     mc = stationary_moments(ens, t_from=2.0)
     assert np.all(np.abs(np.asarray(mc.cov) - np.asarray(density.cov)) <= 4 * np.asarray(ens.cov_se[-1])), mc.cov
 
@@ -106,15 +120,22 @@ def test_statement_2_invariant_measure():
     z_q = np.sum(np.exp(-alpha * q**2 / 2) / (1 + q**2 / 2)) * (q[1] - q[0])
     np.testing.assert_allclose(density.log_normaliser, math.log(z_q * math.sqrt(2 * math.pi / alpha)), rtol=1e-10)
     assert float(density.cov[0, 0]) < 1 / alpha < float(density.cov[1, 1]) + 1e-12  # N thins out large |q|
-    with pytest.raises(ValueError, match=r"invariant measure of the frictionless, noiseless flow fails: "
-                                         r"N = 1 \(Liouville, Statement 1\) is not invariant"):
+    with pytest.raises(
+        ValueError,
+        match=r"invariant measure of the frictionless, noiseless flow fails: "
+        r"N = 1 \(Liouville, Statement 1\) is not invariant",
+    ):
         stationary_density(conformal(eps=eps, nu=nu), oscillator_hamiltonian)
 
 
 def test_above_three_dimensions_the_density_is_known_up_to_its_constant():
     names = ("u1", "u2", "u3", "u4")
-    system = system_of(lambda t, y, p: -2 * p.eps * y, names, ("velocity",) * 4,
-                       diffusion=lambda t, y, p: jnp.sqrt(p.nu) * jnp.eye(4, dtype=y.dtype))
+    system = system_of(
+        lambda t, y, p: -2 * p.eps * y,
+        names,
+        ("velocity",) * 4,
+        diffusion=lambda t, y, p: jnp.sqrt(p.nu) * jnp.eye(4, dtype=y.dtype),
+    )
     density = stationary_density(system, lambda x, p: 0.5 * x @ x)
     np.testing.assert_allclose(density.alpha, 4 * 0.5 / 1.0, rtol=1e-12)
     assert density.log_normaliser is None
@@ -127,6 +148,7 @@ def test_above_three_dimensions_the_density_is_known_up_to_its_constant():
 
 def test_noisy_chaplygin_sleigh_is_refused():
     """The sleigh's frictionless flow compresses phase volume (div = −(ma/J) v): no invariant measure."""
+
     def energy(x, p):
         return 0.5 * (p.mass * x[-2] ** 2 + (p.inertia + p.mass * p.offset**2) * x[-1] ** 2)
 
@@ -138,30 +160,41 @@ def test_noisy_chaplygin_sleigh_is_refused():
 def test_refusals_name_the_failing_condition():
     ball = BallOnVibratingPlane(drift=False)
     poisson = dataclasses.replace(ball.build(), noise=CompoundPoisson(law=NormalJumps(), intensity=1.0))
-    with pytest.raises(ValueError, match=r"normal system \(Wiener noise\) fails: the system is driven by CompoundPoisson"):
+    with pytest.raises(
+        ValueError, match=r"normal system \(Wiener noise\) fails: the system is driven by CompoundPoisson"
+    ):
         stationary_density(poisson, lambda x, p: 0.5 * x @ x)
 
     cubic = system_of(lambda t, y, p: -2 * p.eps * (y + y**3), ("u",), ("velocity",))
-    with pytest.raises(ValueError, match=r"friction proportional to bbᵀ \(S0 condition 1, a \+ aᵀ = 2bbᵀ\) fails: "
-                                         r"the flux-balance α .* ranges over"):
+    with pytest.raises(
+        ValueError,
+        match=r"friction proportional to bbᵀ \(S0 condition 1, a \+ aᵀ = 2bbᵀ\) fails: "
+        r"the flux-balance α .* ranges over",
+    ):
         stationary_density(cubic, lambda x, p: 0.5 * x @ x)
 
     def twisted(t, y, p):  # antisymmetric friction with a non-radial coefficient: α is constant, the flux is not
         rot = jnp.stack([-y[1], y[0]])
         return -2 * p.eps * (y + y[0] * rot)
 
-    swirl = system_of(twisted, ("u", "w"), ("velocity", "velocity"),
-                      diffusion=lambda t, y, p: jnp.sqrt(p.nu) * jnp.eye(2, dtype=y.dtype))
+    swirl = system_of(
+        twisted,
+        ("u", "w"),
+        ("velocity", "velocity"),
+        diffusion=lambda t, y, p: jnp.sqrt(p.nu) * jnp.eye(2, dtype=y.dtype),
+    )
     with pytest.raises(ValueError, match=r"antisymmetric part must conserve N e\^\{−αH\}.*Fokker–Planck residual"):
         stationary_density(swirl, lambda x, p: 0.5 * x @ x)
 
-    free = system_of(lambda t, y, p: jnp.stack([y[1], -2 * p.eps * y[1]]), ("q", "p"),
-                     ("independent_coordinate", "momentum"))
+    free = system_of(
+        lambda t, y, p: jnp.stack([y[1], -2 * p.eps * y[1]]), ("q", "p"), ("independent_coordinate", "momentum")
+    )
     with pytest.raises(ValueError, match=r"integrability ∫ N exp\(−αH\) < ∞ \(S0 condition 3\) fails"):
         stationary_density(free, lambda x, p: 0.5 * x[1] ** 2)
 
-    spring = system_of(lambda t, y, p: jnp.stack([y[1], -y[0] - 2 * p.eps * y[1]]), ("x", "u"),
-                       ("dependent_coordinate", "velocity"))
+    spring = system_of(
+        lambda t, y, p: jnp.stack([y[1], -y[0] - 2 * p.eps * y[1]]), ("x", "u"), ("dependent_coordinate", "velocity")
+    )
     with pytest.raises(ValueError, match=r"Chaplygin decoupling fails"):
         stationary_density(spring, lambda x, p: 0.5 * x @ x)
 

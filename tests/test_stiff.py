@@ -12,8 +12,15 @@ from nhsde.scenes import BallOnVibratingPlane
 def velocity_after(solver, eps, dt, steps, nu=0.0):
     scene = BallOnVibratingPlane(eps=eps, nu=nu, drift=False)
     ens = nhsde.simulate(
-        scene.build(), jnp.array([1.0, -2.0], jnp.float64), jax.random.key(0), n_paths=64, t1=steps * dt,
-        dt=dt, solver=solver, save=nhsde.Save(n=2, paths=True), on_failure="exclude",
+        scene.build(),
+        jnp.array([1.0, -2.0], jnp.float64),
+        jax.random.key(0),
+        n_paths=64,
+        t1=steps * dt,
+        dt=dt,
+        solver=solver,
+        save=nhsde.Save(n=2, paths=True),
+        on_failure="exclude",
     )
     return ens
 
@@ -64,8 +71,14 @@ def test_exponential_solver_converges_to_the_stationary_variance():
     # and the ensemble at εh = 0.1 sits on the exact value within MC error plus the 0.3 % scheme bias
     scene = BallOnVibratingPlane(eps=eps, nu=nu, drift=False)
     ens = nhsde.simulate(
-        scene.build(), scene.initial_state().astype(jnp.float64), jax.random.key(2), n_paths=8192, t1=0.5,
-        dt=0.002, solver="exponential", save=nhsde.Save(n=2),
+        scene.build(),
+        scene.initial_state().astype(jnp.float64),
+        jax.random.key(2),
+        n_paths=8192,
+        t1=0.5,
+        dt=0.002,
+        solver="exponential",
+        save=nhsde.Save(n=2),
     )
     exact = sigma2 / (4 * eps)
     assert abs(float(ens.cov[-1, 0, 0]) - exact) <= 4 * float(ens.cov_se[-1, 0, 0]) + 0.004 * exact
@@ -75,8 +88,12 @@ def test_exponential_needs_a_linear_part():
     from nhsde import StateLayout, StochasticSystem
 
     system = StochasticSystem(
-        drift_fn=lambda t, y, p: -y, diffusion_fn=lambda t, y, p: jnp.ones((1, 1), y.dtype), params=None,
-        layout=StateLayout(("y",), ("independent_coordinate",)), noise_dim=1, additive_noise=True,
+        drift_fn=lambda t, y, p: -y,
+        diffusion_fn=lambda t, y, p: jnp.ones((1, 1), y.dtype),
+        params=None,
+        layout=StateLayout(("y",), ("independent_coordinate",)),
+        noise_dim=1,
+        additive_noise=True,
     )
     with pytest.raises(ValueError, match="linear drift part"):
         nhsde.simulate(system, jnp.zeros(1), jax.random.key(0), n_paths=8, t1=1.0, dt=0.1, solver="exponential")

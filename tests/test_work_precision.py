@@ -14,9 +14,16 @@ def rows():
     scene = BallOnVibratingPlane(eps=1.0, nu=1.0)
     reference = float(ball_covariances(jnp.float64(1.0), 1.0, 1.0, 1 / 1.4)[2])
     return nhsde.work_precision(
-        scene.build(), scene.initial_state().astype(jnp.float64), jax.random.key(0), t1=1.0,
-        solvers=["euler", "sra1"], dts=[0.25, 0.125, 0.0625], n_paths=2048, strong_paths=128,
-        statistic=lambda ens: (ens.cov[-1, 2, 2], ens.cov_se[-1, 2, 2]), reference=reference,
+        scene.build(),
+        scene.initial_state().astype(jnp.float64),
+        jax.random.key(0),
+        t1=1.0,
+        solvers=["euler", "sra1"],
+        dts=[0.25, 0.125, 0.0625],
+        n_paths=2048,
+        strong_paths=128,
+        statistic=lambda ens: (ens.cov[-1, 2, 2], ens.cov_se[-1, 2, 2]),
+        reference=reference,
         save=nhsde.Save(names=("u_x",), n=2),
     )
 

@@ -5,25 +5,28 @@ integrates vmapped ensembles on diffrax; :mod:`nhsde.statistics` turns them into
 drift statistics, differentiable in every physical parameter.
 """
 
-from . import noise as noise
-from . import mechanics as mechanics
-from . import scenes as scenes
-from . import statistics as statistics
-from . import fit as fit
-from . import bodies as bodies
-from . import analysis as analysis
-from ._params import AbstractParameters as AbstractParameters
-from ._params import parameter as parameter
-from ._params import sqrt_intensity as sqrt_intensity
-from ._simulate import SOLVERS as SOLVERS
-from ._simulate import Ensemble as Ensemble
-from ._simulate import Save as Save
-from ._simulate import SimulationError as SimulationError
-from ._simulate import simulate as simulate
-from ._system import StateLayout as StateLayout
-from ._system import StochasticSystem as StochasticSystem
-from ._work_precision import WorkPrecisionRow as WorkPrecisionRow
-from ._work_precision import cheapest_setting as cheapest_setting
-from ._work_precision import work_precision as work_precision
+from . import (
+    analysis as analysis,
+    bodies as bodies,
+    fit as fit,
+    mechanics as mechanics,
+    noise as noise,
+    scenes as scenes,
+    statistics as statistics,
+)
+from ._params import AbstractParameters as AbstractParameters, parameter as parameter, sqrt_intensity as sqrt_intensity
+from ._simulate import (
+    SOLVERS as SOLVERS,
+    Ensemble as Ensemble,
+    Save as Save,
+    SimulationError as SimulationError,
+    simulate as simulate,
+)
+from ._system import StateLayout as StateLayout, StochasticSystem as StochasticSystem
+from ._work_precision import (
+    WorkPrecisionRow as WorkPrecisionRow,
+    cheapest_setting as cheapest_setting,
+    work_precision as work_precision,
+)
 
 __version__ = "0.1.0"

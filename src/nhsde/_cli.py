@@ -138,8 +138,15 @@ def _cmd_simulate(args):
     def run(eps, nu):
         sysp = system.replace_params(eps=eps, nu=nu)
         ens = nhsde.simulate(
-            sysp, y0, key, n_paths=args.paths, t1=args.t1, dt=args.dt, solver=args.solver,
-            save=nhsde.Save(n=args.save_points), progress=args.progress,
+            sysp,
+            y0,
+            key,
+            n_paths=args.paths,
+            t1=args.t1,
+            dt=args.dt,
+            solver=args.solver,
+            save=nhsde.Save(n=args.save_points),
+            progress=args.progress,
         )
         return (ens.mean, ens.cov), ens
 
@@ -155,23 +162,32 @@ def _cmd_simulate(args):
     d_eps, d_nu = (d_mean[0], d_cov[0]), (d_mean[1], d_cov[1])
     n_failed = int(ens.n_failed)
     print(f"scene {args.scene}: " + ", ".join(f"{k}={float(getattr(p, k)):g}" for k, *_ in p.describe()))
-    print(f"{args.paths} paths, t1={args.t1}, dt={args.dt}, solver {args.solver}, seed {args.seed}; "
-          f"failed paths: {n_failed}")
+    print(
+        f"{args.paths} paths, t1={args.t1}, dt={args.dt}, solver {args.solver}, seed {args.seed}; "
+        f"failed paths: {n_failed}"
+    )
     names = ens.names
     last = -1
-    print(f"\nat t = {float(ens.ts[last]):g}  (mean ± standard error; derivatives by forward mode"
-          + ("" if len(argnums) == 2 else "; d/d nu is nan: it does not exist at nu = 0") + ")")
+    print(
+        f"\nat t = {float(ens.ts[last]):g}  (mean ± standard error; derivatives by forward mode"
+        + ("" if len(argnums) == 2 else "; d/d nu is nan: it does not exist at nu = 0")
+        + ")"
+    )
     print(f"{'quantity':<22}{'value':>26}{'d/d eps':>14}{'d/d nu':>14}")
     for i, n in enumerate(names):
         role = ens.roles[i]
         label = f"m[{n}]" + (" (systematic drift)" if role == "dependent_coordinate" else "")
-        print(f"{label:<22}{_fmt(ens.mean[last, i], ens.mean_se[last, i]):>26}"
-              f"{float(d_eps[0][last, i]):>14.5g}{float(d_nu[0][last, i]):>14.5g}")
+        print(
+            f"{label:<22}{_fmt(ens.mean[last, i], ens.mean_se[last, i]):>26}"
+            f"{float(d_eps[0][last, i]):>14.5g}{float(d_nu[0][last, i]):>14.5g}"
+        )
     for i, a in enumerate(names):
         for j, b in enumerate(names[: i + 1]):
             label = f"K[{a},{b}]"
-            print(f"{label:<22}{_fmt(ens.cov[last, i, j], ens.cov_se[last, i, j]):>26}"
-                  f"{float(d_eps[1][last, i, j]):>14.5g}{float(d_nu[1][last, i, j]):>14.5g}")
+            print(
+                f"{label:<22}{_fmt(ens.cov[last, i, j], ens.cov_se[last, i, j]):>26}"
+                f"{float(d_eps[1][last, i, j]):>14.5g}{float(d_nu[1][last, i, j]):>14.5g}"
+            )
     if any(r == "dependent_coordinate" for r in ens.roles) and len(ens.ts) >= 3:
         d_eff = nhsde.statistics.effective_diffusion(ens)
         print("\neffective diffusion (½ dK/dt over the second half):", np.array2string(np.asarray(d_eff), precision=5))
@@ -182,15 +198,33 @@ def _cmd_simulate(args):
         print(f"closed form (S0 (3.1)): k_xx={float(kxx):.6g}  k_xu={float(kxu):.6g}  k_uu={float(kuu):.6g}")
     if args.out:
         meta = {
-            "format": "nhsde-simulate", "format_version": FORMAT_VERSION, "scene": args.scene,
-            "parameters": {k: float(getattr(p, k)) for k, *_ in p.describe()}, "names": list(names),
-            "roles": list(ens.roles), "paths": args.paths, "t1": args.t1, "dt": args.dt, "solver": args.solver,
-            "seed": args.seed, "x64": bool(args.x64), "versions": _versions(),
+            "format": "nhsde-simulate",
+            "format_version": FORMAT_VERSION,
+            "scene": args.scene,
+            "parameters": {k: float(getattr(p, k)) for k, *_ in p.describe()},
+            "names": list(names),
+            "roles": list(ens.roles),
+            "paths": args.paths,
+            "t1": args.t1,
+            "dt": args.dt,
+            "solver": args.solver,
+            "seed": args.seed,
+            "x64": bool(args.x64),
+            "versions": _versions(),
         }
         np.savez(
-            args.out, ts=ens.ts, mean=ens.mean, cov=ens.cov, mean_se=ens.mean_se, cov_se=ens.cov_se,
-            failed=ens.failed, d_mean_d_eps=d_eps[0], d_mean_d_nu=d_nu[0], d_cov_d_eps=d_eps[1],
-            d_cov_d_nu=d_nu[1], metadata=json.dumps(meta),
+            args.out,
+            ts=ens.ts,
+            mean=ens.mean,
+            cov=ens.cov,
+            mean_se=ens.mean_se,
+            cov_se=ens.cov_se,
+            failed=ens.failed,
+            d_mean_d_eps=d_eps[0],
+            d_mean_d_nu=d_nu[0],
+            d_cov_d_eps=d_eps[1],
+            d_cov_d_nu=d_nu[1],
+            metadata=json.dumps(meta),
         )
         print(f"\nsaved {args.out}")
     return 0
@@ -238,8 +272,10 @@ def _cmd_simulate_config(args):
     except (ConfigError, ValueError, SimulationError) as e:
         raise SystemExit(f"nhsde simulate: {e}") from None
     names = list(ds["name"].values)
-    print(f"\n{ds.attrs['scene']}: {ds.attrs['n_used']} paths used, {ds.attrs['n_failed']} failed; "
-          f"git {ds.attrs['git_revision']}")
+    print(
+        f"\n{ds.attrs['scene']}: {ds.attrs['n_used']} paths used, {ds.attrs['n_failed']} failed; "
+        f"git {ds.attrs['git_revision']}"
+    )
     print(f"at t = {float(ds['time'][-1]):g}  (mean ± standard error)")
     for i, a in enumerate(names):
         print(f"  m[{a}] = {_fmt(ds['mean'][-1, i], ds['mean_se'][-1, i])}")
@@ -272,8 +308,10 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("scenes", help="list the scenes and their parameters")
     sim = sub.add_parser(
-        "simulate", help="simulate a scene; print drift statistics and their gradients, or run a --config file",
-        epilog=RUN_EXAMPLE, formatter_class=argparse.RawDescriptionHelpFormatter,
+        "simulate",
+        help="simulate a scene; print drift statistics and their gradients, or run a --config file",
+        epilog=RUN_EXAMPLE,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     sim.add_argument("scene", nargs="?", help="scene name, see `nhsde scenes` (or use --config)")
     sim.add_argument("--config", help="a TOML run file; runs (or resumes) it, writing netCDF to --out")
@@ -284,13 +322,17 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--seed", type=int, help="random seed (default 0)")
     sim.add_argument("--save-points", type=int, help="save times from 0 to t1 (default 11)")
     sim.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="set a scene parameter")
-    sim.add_argument("--out", help="save the results to this file (.npz for SCENE; netCDF for --config, "
-                     "default the config's name with .nc)")
+    sim.add_argument(
+        "--out",
+        help="save the results to this file (.npz for SCENE; netCDF for --config, default the config's name with .nc)",
+    )
     sim.add_argument("--x64", action="store_true", help="compute in float64")
     sim.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
     fit = sub.add_parser(
-        "fit", help="fit parameters to a run file through simulation (--config FILE)",
-        epilog=FIT_EXAMPLE, formatter_class=argparse.RawDescriptionHelpFormatter,
+        "fit",
+        help="fit parameters to a run file through simulation (--config FILE)",
+        epilog=FIT_EXAMPLE,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     fit.add_argument("--config", required=True, help="a TOML fit file")
     fit.add_argument("--out", help="netCDF file for the estimates (default the config's name with .nc)")

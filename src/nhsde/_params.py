@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import dataclasses
 
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -105,8 +104,6 @@ class AbstractParameters(eqx.Module):
         return dataclasses.replace(self, **changes)
 
 
-
-
 @jax.custom_jvp
 def sqrt_intensity(nu):
     """``√ν``: the amplitude of white noise of intensity ``ν`` (S0: ``E[VVᵀ] = ν δ``).
@@ -125,7 +122,8 @@ def _sqrt_intensity_jvp(primals, tangents):
     (nu,), (dnu,) = primals, tangents
     zero = nu == 0
     root = eqx.error_if(
-        jnp.sqrt(nu), jnp.any(zero),
+        jnp.sqrt(nu),
+        jnp.any(zero),
         "the derivative with respect to a noise intensity nu at nu = 0 is singular (paths scale like √nu); "
         "differentiate at nu > 0 or with respect to √nu.",
     )

@@ -77,7 +77,10 @@ def _schema(kind: str) -> dict:
         "options": "scene-options",
         "parameters": "scene-parameters",
         "initial_state": "scene-state",
-        "solver": {"name": _Field("str", "euler", allowed=_solver_names()), "dt": _Field("float", minimum=0, strict=True)},
+        "solver": {
+            "name": _Field("str", "euler", allowed=_solver_names()),
+            "dt": _Field("float", minimum=0, strict=True),
+        },
         "paths": {"n": _Field("int", minimum=1)},
         "statistics": {"save": _Field("names", None)},
     }
@@ -95,13 +98,24 @@ def _schema(kind: str) -> dict:
 
 
 def _type_name(value) -> str:
-    return {bool: "a boolean", int: "an integer", float: "a number", str: "a string", list: "an array",
-            dict: "a table"}.get(type(value), type(value).__name__)
+    return {
+        bool: "a boolean",
+        int: "an integer",
+        float: "a number",
+        str: "a string",
+        list: "an array",
+        dict: "a table",
+    }.get(type(value), type(value).__name__)
 
 
 def _check(key: str, field: _Field, value):
-    expected = {"int": "an integer", "float": "a number", "str": "a string", "bool": "true or false",
-                "names": "an array of strings"}[field.kind]
+    expected = {
+        "int": "an integer",
+        "float": "a number",
+        "str": "a string",
+        "bool": "true or false",
+        "names": "an array of strings",
+    }[field.kind]
     ok = {
         "int": isinstance(value, int) and not isinstance(value, bool),
         "float": isinstance(value, (int, float)) and not isinstance(value, bool),
@@ -115,8 +129,10 @@ def _check(key: str, field: _Field, value):
         value = float(value)
         if not math.isfinite(value):
             raise ConfigError(f"{key} = {value}: must be finite.")
-    if field.kind in ("int", "float") and field.minimum is not None and (
-        value < field.minimum or (field.strict and value == field.minimum)
+    if (
+        field.kind in ("int", "float")
+        and field.minimum is not None
+        and (value < field.minimum or (field.strict and value == field.minimum))
     ):
         raise ConfigError(f"{key} = {value}: must be {'>' if field.strict else '≥'} {field.minimum:g}.")
     if field.multiple_of and value % field.multiple_of:
@@ -134,7 +150,9 @@ def _table(prefix: str, spec: dict, raw, out: dict):
     for key in raw:
         if key not in spec:
             where = f"[{prefix}]" if prefix else "the top level"
-            raise ConfigError(f"{prefix + '.' if prefix else ''}{key}: unknown key in {where}; allowed: {', '.join(spec)}.")
+            raise ConfigError(
+                f"{prefix + '.' if prefix else ''}{key}: unknown key in {where}; allowed: {', '.join(spec)}."
+            )
     for key, field in spec.items():
         name = f"{prefix}.{key}" if prefix else key
         if isinstance(field, dict):
@@ -157,7 +175,8 @@ def _scene_options(scene_cls) -> dict[str, object]:
     """The scene's keyword options (``drift=True``, ``route="reduced"``, …) and their defaults."""
     signature = inspect.signature(scene_cls.__init__)
     return {
-        name: p.default for name, p in signature.parameters.items()
+        name: p.default
+        for name, p in signature.parameters.items()
         if p.kind is inspect.Parameter.KEYWORD_ONLY and p.default is not inspect.Parameter.empty
     }
 
@@ -178,7 +197,9 @@ def _check_scene(data: dict):
     names = [name for name, *_ in cls.Parameters.describe()]
     for key, value in data["parameters"].items():
         if key not in names:
-            raise ConfigError(f"parameters.{key}: unknown parameter of {data['scene']}; parameters: {', '.join(names)}.")
+            raise ConfigError(
+                f"parameters.{key}: unknown parameter of {data['scene']}; parameters: {', '.join(names)}."
+            )
         _check(f"parameters.{key}", _Field("float"), value)
     data["parameters"] = {k: float(v) for k, v in data["parameters"].items()}
     for table, kwargs in (("options", data["options"]), ("parameters", data["options"] | data["parameters"])):
@@ -189,7 +210,9 @@ def _check_scene(data: dict):
     system = scene.build()
     for key, value in data["initial_state"].items():
         if key not in system.layout.names:
-            raise ConfigError(f"initial_state.{key}: not a state component; the state is {', '.join(system.layout.names)}.")
+            raise ConfigError(
+                f"initial_state.{key}: not a state component; the state is {', '.join(system.layout.names)}."
+            )
         _check(f"initial_state.{key}", _Field("float"), value)
     data["initial_state"] = {k: float(v) for k, v in data["initial_state"].items()}
     save = data["statistics"]["save"]
@@ -204,7 +227,9 @@ def _check_scene(data: dict):
     if "fit" in data:
         for name in data["fit"]["vary"]:
             if name not in names:
-                raise ConfigError(f"fit.vary: {name!r} is not a parameter of {data['scene']}; parameters: {', '.join(names)}.")
+                raise ConfigError(
+                    f"fit.vary: {name!r} is not a parameter of {data['scene']}; parameters: {', '.join(names)}."
+                )
         if not data["fit"]["vary"]:
             raise ConfigError("fit.vary: name at least one parameter.")
 
@@ -387,14 +412,26 @@ def _dataset(config: RunConfig, ts, names, roles, shift, pieces, kept, provenanc
         data_vars["failed"] = (("path",), np.concatenate([k[1] for k in kept]).astype(np.int8))
     done = min(len(pieces) * d["paths"]["chunk"], d["paths"]["n"])
     attrs = {
-        "format": FORMAT, "format_version": FORMAT_VERSION, "config": config.to_json(), "scene": d["scene"],
-        "parameters": json.dumps(_all_parameters(config), sort_keys=True), "solver": d["solver"]["name"],
-        "dt": d["solver"]["dt"], "t0": d["solver"]["t0"], "t1": d["solver"]["t1"], "seed": d["seed"],
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "config": config.to_json(),
+        "scene": d["scene"],
+        "parameters": json.dumps(_all_parameters(config), sort_keys=True),
+        "solver": d["solver"]["name"],
+        "dt": d["solver"]["dt"],
+        "t0": d["solver"]["t0"],
+        "t1": d["solver"]["t1"],
+        "seed": d["seed"],
         "key_impl": str(jax.random.key_impl(jax.random.key(d["seed"]))),
         "key_data": np.asarray(jax.random.key_data(jax.random.key(d["seed"]))).astype(np.int64).tolist(),
-        "precision": d["precision"], "n_paths": d["paths"]["n"], "paths_done": done, "n_used": n,
-        "n_failed": int(n_failed.sum()), "pieces_done": len(pieces),
-        "pieces_total": math.ceil(d["paths"]["n"] / d["paths"]["chunk"]), "complete": int(done == d["paths"]["n"]),
+        "precision": d["precision"],
+        "n_paths": d["paths"]["n"],
+        "paths_done": done,
+        "n_used": n,
+        "n_failed": int(n_failed.sum()),
+        "pieces_done": len(pieces),
+        "pieces_total": math.ceil(d["paths"]["n"] / d["paths"]["chunk"]),
+        "complete": int(done == d["paths"]["n"]),
         **provenance,
     }
     return xr.Dataset(
@@ -439,15 +476,26 @@ def _resume(path: Path, config: RunConfig):
             "delete it or choose another output file to start afresh."
         )
     pieces = [
-        tuple(ds[v].values[k] for v in ("piece_sum_z", "piece_sum_zz", "piece_sum_zzz", "piece_sum_zzzz",
-                                        "piece_n_used", "piece_n_failed"))
+        tuple(
+            ds[v].values[k]
+            for v in (
+                "piece_sum_z",
+                "piece_sum_zz",
+                "piece_sum_zzz",
+                "piece_sum_zzzz",
+                "piece_n_used",
+                "piece_n_failed",
+            )
+        )
         for k in range(ds.sizes["piece"])
     ]
     kept = []
     if "paths" in ds:
         chunk = config.data["paths"]["chunk"]
-        kept = [(ds["paths"].values[i : i + chunk], ds["failed"].values[i : i + chunk].astype(bool))
-                for i in range(0, ds.sizes["path"], chunk)]
+        kept = [
+            (ds["paths"].values[i : i + chunk], ds["failed"].values[i : i + chunk].astype(bool))
+            for i in range(0, ds.sizes["path"], chunk)
+        ]
     provenance = {key: ds.attrs[key] for key in ("versions", "git_revision", "created")}
     now = _provenance()
     for key in ("versions", "git_revision"):
@@ -486,9 +534,17 @@ def run(config: RunConfig, out, *, on_piece: Callable[[int], None] | None = None
     ts = np.linspace(d["solver"]["t0"], d["solver"]["t1"], d["statistics"]["save_points"])
     for k in range(len(pieces), n_pieces):
         ens = simulate(
-            system, y0, key, n_paths=min(chunk, n_total - k * chunk), first_path=k * chunk,
-            t0=d["solver"]["t0"], t1=d["solver"]["t1"], dt=d["solver"]["dt"], solver=d["solver"]["name"],
-            save=Save(names=names, n=d["statistics"]["save_points"], paths=True), on_failure="exclude",
+            system,
+            y0,
+            key,
+            n_paths=min(chunk, n_total - k * chunk),
+            first_path=k * chunk,
+            t0=d["solver"]["t0"],
+            t1=d["solver"]["t1"],
+            dt=d["solver"]["dt"],
+            solver=d["solver"]["name"],
+            save=Save(names=names, n=d["statistics"]["save_points"], paths=True),
+            on_failure="exclude",
             progress=progress,
         )
         paths, failed = np.asarray(ens.paths), np.asarray(ens.failed)
@@ -555,8 +611,14 @@ def run_fit(config: RunConfig, out=None):
         raise ConfigError(f"fit.data = {d['fit']['data']!r}: not an nhsde run file.")
     observed = observations_from_run(data, d["statistics"]["save"])
     system, y0, key, _ = build(config)
-    model = Simulated(y0, key, n_paths=d["paths"]["n"], dt=d["solver"]["dt"], solver=d["solver"]["name"],
-                      t0=float(data["time"].values[0]))
+    model = Simulated(
+        y0,
+        key,
+        n_paths=d["paths"]["n"],
+        dt=d["solver"]["dt"],
+        solver=d["solver"]["name"],
+        t0=float(data["time"].values[0]),
+    )
     result = estimate(system, observed, model, vary=tuple(d["fit"]["vary"]), max_steps=d["fit"]["max_steps"])
     ds = xr.Dataset(
         {
@@ -566,13 +628,19 @@ def run_fit(config: RunConfig, out=None):
             "start": (("parameter",), result.init),
             "history": (("step", "column"), result.history),
         },
-        coords={"parameter": list(result.names), "parameter2": list(result.names),
-                "column": ["loss", *result.names]},
+        coords={"parameter": list(result.names), "parameter2": list(result.names), "column": ["loss", *result.names]},
         attrs={
-            "format": FIT_FORMAT, "format_version": FORMAT_VERSION, "config": config.to_json(),
-            "chi2": result.chi2, "dof": result.dof, "steps": result.steps, "converged": int(result.converged),
-            "observed_from_trajectories": int(observed.from_trajectories), "data_file": str(data_path),
-            "data_config": data.attrs["config"], "data_git_revision": data.attrs["git_revision"],
+            "format": FIT_FORMAT,
+            "format_version": FORMAT_VERSION,
+            "config": config.to_json(),
+            "chi2": result.chi2,
+            "dof": result.dof,
+            "steps": result.steps,
+            "converged": int(result.converged),
+            "observed_from_trajectories": int(observed.from_trajectories),
+            "data_file": str(data_path),
+            "data_config": data.attrs["config"],
+            "data_git_revision": data.attrs["git_revision"],
             **_provenance(),
         },
     )

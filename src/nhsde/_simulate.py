@@ -61,20 +61,43 @@ def _exponential(system):
 
 SOLVERS: dict[str, SolverInfo] = {
     "euler": SolverInfo(lambda s: dfx.Euler(), "ito", False, dfx.BrownianIncrement, 0.5, 1.0, "Euler–Maruyama (Itô)"),
-    "milstein": SolverInfo(lambda s: dfx.ItoMilstein(), "ito", False, dfx.BrownianIncrement, 1.0, 1.0, "Milstein (Itô)"),
+    "milstein": SolverInfo(
+        lambda s: dfx.ItoMilstein(), "ito", False, dfx.BrownianIncrement, 1.0, 1.0, "Milstein (Itô)"
+    ),
     "heun": SolverInfo(
-        lambda s: dfx.EulerHeun(), "stratonovich", False, dfx.BrownianIncrement, 0.5, 1.0,
+        lambda s: dfx.EulerHeun(),
+        "stratonovich",
+        False,
+        dfx.BrownianIncrement,
+        0.5,
+        1.0,
         "Euler–Heun (Stratonovich): Euler in the drift, Heun in the noise",
     ),
     "heun2": SolverInfo(
-        lambda s: dfx.Heun(), "stratonovich", False, dfx.BrownianIncrement, 0.5, 1.0,
+        lambda s: dfx.Heun(),
+        "stratonovich",
+        False,
+        dfx.BrownianIncrement,
+        0.5,
+        1.0,
         "Heun's method (Stratonovich): Heun in drift and noise, second order in the drift",
     ),
     "sra1": SolverInfo(
-        lambda s: dfx.SRA1(scan_kind="lax"), "any", True, dfx.SpaceTimeLevyArea, 1.5, 1.5, "SRA1 stochastic Runge–Kutta (additive noise)"
+        lambda s: dfx.SRA1(scan_kind="lax"),
+        "any",
+        True,
+        dfx.SpaceTimeLevyArea,
+        1.5,
+        1.5,
+        "SRA1 stochastic Runge–Kutta (additive noise)",
     ),
     "exponential": SolverInfo(
-        _exponential, "ito", False, dfx.BrownianIncrement, 0.5, 1.0,
+        _exponential,
+        "ito",
+        False,
+        dfx.BrownianIncrement,
+        0.5,
+        1.0,
         "exponential Euler–Maruyama, exact in the linear friction: stable for any ε·dt",
     ),
 }
@@ -173,8 +196,10 @@ class Ensemble(eqx.Module):
 def _number(name, value, *, positive=False, integer=False):
     if isinstance(value, jax.core.Tracer):
         raise TypeError(f"{name} must be a concrete Python number (it fixes array shapes), not a traced value.")
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) and not (
-        isinstance(value, (np.ndarray, jax.Array)) and np.ndim(value) == 0
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, float, np.integer, np.floating))
+        and not (isinstance(value, (np.ndarray, jax.Array)) and np.ndim(value) == 0)
     ):
         raise TypeError(f"{name}={value!r}; expected a number.")
     v = float(value)
@@ -266,7 +291,9 @@ def _fixed_chunk(system, params, cfg, y0, key, chunk_index):
 
     y = y0.reshape(nb, BLOCK, -1)
     # The offered solvers keep no state between steps; init only runs diffrax's checks.
-    first = system.noise.block_increment(keys[0], jnp.int32(0), base_dt, (system.noise_dim,), cfg.substeps, info.levy_area)
+    first = system.noise.block_increment(
+        keys[0], jnp.int32(0), base_dt, (system.noise_dim,), cfg.substeps, info.levy_area
+    )
     solver.init(terms(jax.tree_util.tree_map(lambda a: a[0], first)), t0, t0 + dt, y[0, 0], params)
     ok = jnp.all(jnp.isfinite(y), axis=-1)
     first_obs = observe(t0, y, params)
@@ -291,15 +318,26 @@ def _adaptive_chunk(system, params, cfg, y0, key, chunk_index):
 
     def one(y0_, path_id):
         path = dfx.VirtualBrownianTree(
-            cfg.t0, cfg.t1, tol=dt0 / 1024, shape=(system.noise_dim,), key=jr.fold_in(key, path_id),
+            cfg.t0,
+            cfg.t1,
+            tol=dt0 / 1024,
+            shape=(system.noise_dim,),
+            key=jr.fold_in(key, path_id),
             levy_area=info.levy_area,
         )
         terms = dfx.MultiTerm(dfx.ODETerm(system.drift_fn), dfx.ControlTerm(system.diffusion_fn, path))
         sol = dfx.diffeqsolve(
-            terms, solver, cfg.t0, cfg.t1, dt0, y0_, params,
+            terms,
+            solver,
+            cfg.t0,
+            cfg.t1,
+            dt0,
+            y0_,
+            params,
             saveat=dfx.SaveAt(ts=ts),
             stepsize_controller=dfx.PIDController(rtol=cfg.rtol, atol=cfg.atol),
-            max_steps=cfg.max_steps, throw=False,
+            max_steps=cfg.max_steps,
+            throw=False,
         )
         ys = jnp.where(jnp.isfinite(sol.ys), sol.ys, jnp.nan)
         bad = (sol.result != dfx.RESULTS.successful) | ~jnp.all(jnp.isfinite(ys))
@@ -328,7 +366,13 @@ def _block_sums(obs, valid, shift):
         z = jnp.where(valid_b[:, None, None], obs_b - shift, 0.0)
         zz = jnp.einsum("cni,cnj->cnij", z, z)
         z_zz = jnp.einsum("cni,cnj->cnij", z, z * z)
-        return None, (jnp.sum(z, 0), jnp.sum(zz, 0), jnp.sum(z_zz, 0), jnp.sum(zz * zz, 0), jnp.sum(valid_b, dtype=jnp.int32))
+        return None, (
+            jnp.sum(z, 0),
+            jnp.sum(zz, 0),
+            jnp.sum(z_zz, 0),
+            jnp.sum(zz * zz, 0),
+            jnp.sum(valid_b, dtype=jnp.int32),
+        )
 
     blocks = (obs.reshape(-1, BLOCK, *obs.shape[1:]), valid.reshape(-1, BLOCK))
     return jax.lax.scan(one, None, blocks)[1]
@@ -428,7 +472,10 @@ def _run(system: StochasticSystem, y0, key, cfg: _Config):
         spec = jax.sharding.PartitionSpec("paths")
         sharded = jax.shard_map(
             lambda c: jax.tree_util.tree_map(lambda a: a[None], chunk_sums(c[0])),
-            mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False,
+            mesh=mesh,
+            in_specs=spec,
+            out_specs=spec,
+            check_vma=False,
         )
 
         def round_body(sums, r):
@@ -525,9 +572,7 @@ def simulate(
             "use 'euler', 'milstein', 'heun' or 'heun2'."
         )
     if not system.noise.continuous and solver != "euler":
-        raise ValueError(
-            f"solver={solver!r} does not apply to a system driven by jumps; use 'euler' (S0 §2, Remark)."
-        )
+        raise ValueError(f"solver={solver!r} does not apply to a system driven by jumps; use 'euler' (S0 §2, Remark).")
     if adaptive and not isinstance(system.noise, Wiener):
         raise ValueError("adaptive steps need a Wiener driver (VirtualBrownianTree); use fixed steps.")
     n_paths = _number("n_paths", n_paths, integer=True)
@@ -587,12 +632,28 @@ def simulate(
     if len(devices) > 1:
         n_chunks = len(devices) * math.ceil(n_chunks / len(devices))
     cfg = _Config(
-        n_paths=n_paths, first_path=first_path, n_chunks=n_chunks, chunk=chunk_size, n_steps=n_steps,
-        n_save=n_save, t0=t0, t1=t1, substeps=substeps, names=names, solver=solver,
-        adaptive=bool(adaptive), rtol=rtol, atol=atol, max_steps=max_steps, keep_paths=bool(save.paths),
-        per_path_y0=y0.ndim == 2, progress=bool(progress), devices=devices,
+        n_paths=n_paths,
+        first_path=first_path,
+        n_chunks=n_chunks,
+        chunk=chunk_size,
+        n_steps=n_steps,
+        n_save=n_save,
+        t0=t0,
+        t1=t1,
+        substeps=substeps,
+        names=names,
+        solver=solver,
+        adaptive=bool(adaptive),
+        rtol=rtol,
+        atol=atol,
+        max_steps=max_steps,
+        keep_paths=bool(save.paths),
+        per_path_y0=y0.ndim == 2,
+        progress=bool(progress),
+        devices=devices,
         checkpoint=_residuals_too_large(n_steps // (n_save - 1), chunk_size, system.state_dim, y0.dtype)
-        if checkpoint is None else bool(checkpoint),
+        if checkpoint is None
+        else bool(checkpoint),
     )
     if progress:
         from tqdm.auto import tqdm
@@ -619,6 +680,16 @@ def simulate(
         system.layout.roles[system.layout.index(n)] if n in system.layout.names else "observable" for n in names
     )
     return Ensemble(
-        ts=ts, mean=mean, cov=cov, mean_se=mean_se, cov_se=cov_se, n_used=n_used, failed=failed, paths=paths,
-        names=names, roles=roles, solver=solver, dt=(t1 - t0) / n_steps,
+        ts=ts,
+        mean=mean,
+        cov=cov,
+        mean_se=mean_se,
+        cov_se=cov_se,
+        n_used=n_used,
+        failed=failed,
+        paths=paths,
+        names=names,
+        roles=roles,
+        solver=solver,
+        dt=(t1 - t0) / n_steps,
     )

@@ -74,9 +74,7 @@ class _ItoStratonovichDrift(eqx.Module):
         b = self.diffusion(t, y, params)
         # (∂b/∂Z · b)_i = Σ_{j,k} ∂b_ij/∂Z_k b_kj; jvp of Z ↦ b(Z) e_j along b_j per column.
         eye = jnp.eye(b.shape[1], dtype=b.dtype)
-        cols = jax.vmap(
-            lambda e, bj: jax.jvp(lambda z: self.diffusion(t, z, params) @ e, (y,), (bj,))[1]
-        )(eye, b.T)
+        cols = jax.vmap(lambda e, bj: jax.jvp(lambda z: self.diffusion(t, z, params) @ e, (y,), (bj,))[1])(eye, b.T)
         return self.drift(t, y, params) + self.sign * 0.5 * jnp.sum(cols, axis=0)
 
 
@@ -112,9 +110,7 @@ class StochasticSystem(eqx.Module):
 
     def __check_init__(self):
         if self.interpretation not in ("ito", "stratonovich"):
-            raise ValueError(
-                f"interpretation={self.interpretation!r}; allowed: 'ito' or 'stratonovich'."
-            )
+            raise ValueError(f"interpretation={self.interpretation!r}; allowed: 'ito' or 'stratonovich'.")
         if self.noise_dim < 1:
             raise ValueError(f"noise_dim={self.noise_dim}; must be ≥ 1.")
         clash = set(self.layout.names) & {name for name, _ in self.observables}
@@ -131,7 +127,9 @@ class StochasticSystem(eqx.Module):
         if not jnp.issubdtype(y.dtype, jnp.floating):
             y = y.astype(jnp.result_type(float))
         if y.shape != (self.state_dim,):
-            raise ValueError(f"{name} has shape {y.shape}; expected ({self.state_dim},) for the state {self.layout.names}.")
+            raise ValueError(
+                f"{name} has shape {y.shape}; expected ({self.state_dim},) for the state {self.layout.names}."
+            )
         return y
 
     def drift(self, t, y, args):
@@ -148,9 +146,7 @@ class StochasticSystem(eqx.Module):
         table = dict(self.observables)
         for name in names:
             if name not in self.layout.names and name not in table:
-                raise ValueError(
-                    f"save: unknown name {name!r}; this system offers {self.observable_names()}."
-                )
+                raise ValueError(f"save: unknown name {name!r}; this system offers {self.observable_names()}.")
 
         def fn(t, y, params):
             return jnp.stack(
@@ -170,9 +166,7 @@ class StochasticSystem(eqx.Module):
         if interpretation == self.interpretation:
             return self
         if not self.noise.continuous:
-            raise ValueError(
-                "a system driven by jumps has no Stratonovich form (S0 §2, Remark); use an Itô solver."
-            )
+            raise ValueError("a system driven by jumps has no Stratonovich form (S0 §2, Remark); use an Itô solver.")
         drift = self.drift_fn
         if not self.additive_noise:
             sign = -1.0 if interpretation == "stratonovich" else 1.0

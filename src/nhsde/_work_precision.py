@@ -75,8 +75,9 @@ def work_precision(
     final = Save(n=2, paths=True)
 
     def endpoint(solver, dt):
-        ens = simulate(system, y0, key, n_paths=strong_paths, t1=t1, dt=dt, solver=solver,
-                       brownian_dt=reference_dt, save=final)
+        ens = simulate(
+            system, y0, key, n_paths=strong_paths, t1=t1, dt=dt, solver=solver, brownian_dt=reference_dt, save=final
+        )
         return np.asarray(ens.paths[:, -1], np.float64)
 
     ref = endpoint(ref_solver, reference_dt)
@@ -92,9 +93,11 @@ def work_precision(
             value, se = statistic(ens)
             memory = jax.jit(run).lower().compile().memory_analysis()
             peak = int(memory.temp_size_in_bytes + memory.output_size_in_bytes) if memory is not None else -1
-            rows.append(WorkPrecisionRow(
-                solver, float(dt), strong, abs(float(value) - reference), float(se), seconds, peak, n_paths
-            ))
+            rows.append(
+                WorkPrecisionRow(
+                    solver, float(dt), strong, abs(float(value) - reference), float(se), seconds, peak, n_paths
+                )
+            )
     return rows
 
 

@@ -20,7 +20,9 @@ __all__ = ["band", "confidence_ellipse", "density", "drift_curves", "figure_dir"
 def figure_dir() -> Path:
     """Where :func:`save` writes: ``$NHSDE_NOTEBOOK_OUT``, else ``notebooks/_output`` from the repository
     root, else ``_output`` in the current directory (created if missing)."""
-    out = Path(os.environ.get("NHSDE_NOTEBOOK_OUT") or ("notebooks/_output" if Path("notebooks").is_dir() else "_output"))
+    out = Path(
+        os.environ.get("NHSDE_NOTEBOOK_OUT") or ("notebooks/_output" if Path("notebooks").is_dir() else "_output")
+    )
     out.mkdir(parents=True, exist_ok=True)
     return out
 
@@ -48,16 +50,29 @@ def _axes(ax, n=1, **subplots):
     return axes[0] if n > 1 else axes[0, 0]
 
 
-def band(ax, ts, value, se, *, n_se: float = 2.0, label: str | None = None, color=None, theory=None, theory_ts=None,
-         theory_label: str = "theory"):
-    """``value ± n_se·se`` against ``ts`` as markers on a shaded band; ``theory`` (at ``theory_ts``, default ``ts``) as a line."""
+def band(
+    ax,
+    ts,
+    value,
+    se,
+    *,
+    n_se: float = 2.0,
+    label: str | None = None,
+    color=None,
+    theory=None,
+    theory_ts=None,
+    theory_label: str = "theory",
+):
+    """``value ± n_se·se`` against ``ts`` as markers on a shaded band; ``theory`` (at ``theory_ts``, default
+    ``ts``) as a line."""
     ax = _axes(ax)
     ts, value, se = (np.asarray(a, np.float64) for a in (ts, value, se))
     if not ts.shape == value.shape == se.shape:
         raise ValueError(f"band: ts {ts.shape}, value {value.shape} and se {se.shape} must have one shape.")
     (line,) = ax.plot(ts, value, "o", ms=3.5, color=color, label=label)
-    ax.fill_between(ts, value - n_se * se, value + n_se * se, color=line.get_color(), alpha=0.25, lw=0,
-                    label=f"±{n_se:g} SE")
+    ax.fill_between(
+        ts, value - n_se * se, value + n_se * se, color=line.get_color(), alpha=0.25, lw=0, label=f"±{n_se:g} SE"
+    )
     if theory is not None:
         tt = ts if theory_ts is None else np.asarray(theory_ts, np.float64)
         ax.plot(tt, np.asarray(theory, np.float64), "-", color="k", lw=1.2, label=theory_label)
@@ -80,8 +95,15 @@ def drift_curves(stats, *, theory: Callable | None = None, axes=None, n_se: floa
     for i, name in enumerate(stats.names):
         color = f"C{i}"
         band(axes[0], ts, stats.systematic[:, i], stats.systematic_se[:, i], n_se=n_se, label=f"m[{name}]", color=color)
-        band(axes[1], ts, stats.fluctuation[:, i, i], stats.fluctuation_se[:, i, i], n_se=n_se,
-             label=f"K[{name},{name}]", color=color)
+        band(
+            axes[1],
+            ts,
+            stats.fluctuation[:, i, i],
+            stats.fluctuation_se[:, i, i],
+            n_se=n_se,
+            label=f"K[{name},{name}]",
+            color=color,
+        )
         if theory is not None:
             axes[0].plot(tt, th_mean[:, i], "-", color=color, lw=1)
             axes[1].plot(tt, th_cov[:, i, i], "-", color=color, lw=1)
@@ -94,8 +116,17 @@ def drift_curves(stats, *, theory: Callable | None = None, axes=None, n_se: floa
     return axes
 
 
-def density(ax, samples, pdf: Callable, *, bins: int = 40, range: tuple[float, float] | None = None,
-            n_se: float = 2.0, label: str = "samples", theory_label: str = "theory"):
+def density(
+    ax,
+    samples,
+    pdf: Callable,
+    *,
+    bins: int = 40,
+    range: tuple[float, float] | None = None,
+    n_se: float = 2.0,
+    label: str = "samples",
+    theory_label: str = "theory",
+):
     """Histogram of ``samples`` against the density ``pdf`` with the band a histogram of that many samples fills.
 
     A bin with probability ``p`` holds ``n p ± √(n p (1 − p))`` samples, so the
@@ -116,8 +147,14 @@ def density(ax, samples, pdf: Callable, *, bins: int = 40, range: tuple[float, f
     n = x.size
     spread = n_se * np.sqrt(n * p * np.clip(1 - p, 0, 1)) / (n * width)
     steps = np.repeat(edges, 2)[1:-1]  # the band follows the bins
-    ax.fill_between(steps, np.repeat(np.maximum(p / width - spread, 0.0), 2), np.repeat(p / width + spread, 2),
-                    color="0.8", lw=0, label=f"±{n_se:g} SE of a histogram")
+    ax.fill_between(
+        steps,
+        np.repeat(np.maximum(p / width - spread, 0.0), 2),
+        np.repeat(p / width + spread, 2),
+        color="0.8",
+        lw=0,
+        label=f"±{n_se:g} SE of a histogram",
+    )
     ax.stairs(counts / (n * width), edges, color="C1", lw=1.5, label=label)
     xs = np.linspace(edges[0], edges[-1], 400)
     ax.plot(xs, np.asarray(pdf(xs), np.float64), "k-", lw=1.2, label=theory_label)

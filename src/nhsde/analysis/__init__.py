@@ -20,35 +20,43 @@ A vector field is any ``f(t, y, params)``, e.g. :class:`nhsde.bodies.RollingFiel
 or a :class:`~nhsde.StochasticSystem`'s ``drift_fn``.
 """
 
-from ._integrals import Flow as Flow
-from ._integrals import integral_drift as integral_drift
-from ._integrals import integral_rates as integral_rates
-from ._integrals import solve_flow as solve_flow
-from ._liouville import LiouvilleCheck as LiouvilleCheck
-from ._liouville import MeasureObstruction as MeasureObstruction
-from ._liouville import check_invariant_measure as check_invariant_measure
-from ._liouville import divergence as divergence
-from ._liouville import measure_obstruction as measure_obstruction
-from ._poincare import PoincareSection as PoincareSection
-from ._poincare import andoyer as andoyer
-from ._poincare import from_andoyer as from_andoyer
-from ._poincare import poincare_section as poincare_section
-from ._residence import LinearResidence as LinearResidence
-from ._residence import Residence as Residence
-from ._residence import Spread as Spread
-from ._residence import linear_residence_time as linear_residence_time
-from ._residence import residence_time as residence_time
-from ._residence import stationary_spread as stationary_spread
-from ._stability import Stability as Stability
-from ._stability import jacobian as jacobian
-from ._stability import linear_stability as linear_stability
-from ._steady import ChaplyginSystem as ChaplyginSystem
-from ._steady import StabilityBoundary as StabilityBoundary
-from ._steady import SteadyMotions as SteadyMotions
-from ._steady import SteadyStability as SteadyStability
-from ._steady import chaplygin_system as chaplygin_system
-from ._steady import delta_matrix as delta_matrix
-from ._steady import routh_pencil as routh_pencil
-from ._steady import stability_boundary as stability_boundary
-from ._steady import steady_motions as steady_motions
-from ._steady import steady_stability as steady_stability
+from ._integrals import (
+    Flow as Flow,
+    integral_drift as integral_drift,
+    integral_rates as integral_rates,
+    solve_flow as solve_flow,
+)
+from ._liouville import (
+    LiouvilleCheck as LiouvilleCheck,
+    MeasureObstruction as MeasureObstruction,
+    check_invariant_measure as check_invariant_measure,
+    divergence as divergence,
+    measure_obstruction as measure_obstruction,
+)
+from ._poincare import (
+    PoincareSection as PoincareSection,
+    andoyer as andoyer,
+    from_andoyer as from_andoyer,
+    poincare_section as poincare_section,
+)
+from ._residence import (
+    LinearResidence as LinearResidence,
+    Residence as Residence,
+    Spread as Spread,
+    linear_residence_time as linear_residence_time,
+    residence_time as residence_time,
+    stationary_spread as stationary_spread,
+)
+from ._stability import Stability as Stability, jacobian as jacobian, linear_stability as linear_stability
+from ._steady import (
+    ChaplyginSystem as ChaplyginSystem,
+    StabilityBoundary as StabilityBoundary,
+    SteadyMotions as SteadyMotions,
+    SteadyStability as SteadyStability,
+    chaplygin_system as chaplygin_system,
+    delta_matrix as delta_matrix,
+    routh_pencil as routh_pencil,
+    stability_boundary as stability_boundary,
+    steady_motions as steady_motions,
+    steady_stability as steady_stability,
+)

@@ -60,8 +60,15 @@ def _solve(vector_field, y0, params, t1, n_save, rtol, atol, solver, max_steps, 
 
     def one(y):
         sol = dfx.diffeqsolve(
-            dfx.ODETerm(field), SOLVERS[solver](), 0.0, t1, None, y, params,
-            saveat=dfx.SaveAt(ts=ts), stepsize_controller=dfx.PIDController(rtol=rtol, atol=atol),
+            dfx.ODETerm(field),
+            SOLVERS[solver](),
+            0.0,
+            t1,
+            None,
+            y,
+            params,
+            saveat=dfx.SaveAt(ts=ts),
+            stepsize_controller=dfx.PIDController(rtol=rtol, atol=atol),
             max_steps=max_steps,
         )
         return sol.ys
@@ -73,8 +80,17 @@ def _solve(vector_field, y0, params, t1, n_save, rtol, atol, solver, max_steps, 
 
 
 def solve_flow(
-    vector_field: Callable, y0, params, *, t1: float, n_save: int = 101, rtol: float = 1e-11, atol: float = 1e-12,
-    solver: str = "dopri8", max_steps: int = 1_000_000, log_volume: bool = False,
+    vector_field: Callable,
+    y0,
+    params,
+    *,
+    t1: float,
+    n_save: int = 101,
+    rtol: float = 1e-11,
+    atol: float = 1e-12,
+    solver: str = "dopri8",
+    max_steps: int = 1_000_000,
+    log_volume: bool = False,
 ) -> Flow:
     """Integrate ``ẏ = v(t, y, params)`` from each row of ``y0`` ``(n, d)`` with an adaptive high-order solver.
 
@@ -89,7 +105,15 @@ def solve_flow(
     y0 = _states(y0)
     params = _cast(params, y0.dtype)
     return _solve(
-        vector_field, y0, params, jnp.asarray(t1, y0.dtype), int(n_save), float(rtol), float(atol), solver, int(max_steps),
+        vector_field,
+        y0,
+        params,
+        jnp.asarray(t1, y0.dtype),
+        int(n_save),
+        float(rtol),
+        float(atol),
+        solver,
+        int(max_steps),
         bool(log_volume),
     )
 

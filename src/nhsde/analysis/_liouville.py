@@ -91,7 +91,8 @@ def check_invariant_measure(vector_field: Callable, density: Callable, states, p
     if not np.all(np.isfinite(rho) & (rho > 0)):
         i = int(np.argmax(~(np.isfinite(rho) & (rho > 0))))
         raise ValueError(
-            f"density={float(rho[i])!r} at state {i} ({np.asarray(states[i]).tolist()}); a density must be positive and finite."
+            f"density={float(rho[i])!r} at state {i} ({np.asarray(states[i]).tolist()}); a density "
+            "must be positive and finite."
         )
     return LiouvilleCheck(residual=residual, relative=relative)
 

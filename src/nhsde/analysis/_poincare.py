@@ -30,11 +30,13 @@ def from_andoyer(L, G, l, g):
     c = L / G
     s = jnp.sqrt(jnp.maximum(1 - c**2, 0.0))
     omega = jnp.stack([G * s * jnp.sin(l), G * s * jnp.cos(l), L])
-    gamma = jnp.stack([
-        c * jnp.cos(g) * jnp.sin(l) + jnp.sin(g) * jnp.cos(l),
-        c * jnp.cos(g) * jnp.cos(l) - jnp.sin(g) * jnp.sin(l),
-        -s * jnp.cos(g),
-    ])
+    gamma = jnp.stack(
+        [
+            c * jnp.cos(g) * jnp.sin(l) + jnp.sin(g) * jnp.cos(l),
+            c * jnp.cos(g) * jnp.cos(l) - jnp.sin(g) * jnp.sin(l),
+            -s * jnp.cos(g),
+        ]
+    )
     return jnp.concatenate([omega, gamma])
 
 
@@ -82,7 +84,9 @@ def _section(vector_field, energy, params, points, h, g0, n_crossings, dt, max_s
     def crossing(y):
         """``(sign·sin(g − g₀), cos(g − g₀))``: the section is crossed where the first turns positive."""
         a, b = _frame(y)
-        return sign * (jnp.dot(y[3:6], b) * cg - jnp.dot(y[3:6], a) * sg), jnp.dot(y[3:6], a) * cg + jnp.dot(y[3:6], b) * sg
+        return sign * (jnp.dot(y[3:6], b) * cg - jnp.dot(y[3:6], a) * sg), jnp.dot(y[3:6], a) * cg + jnp.dot(
+            y[3:6], b
+        ) * sg
 
     def start(point):
         l, ratio = point[0], point[1]
@@ -137,8 +141,18 @@ def _section(vector_field, energy, params, points, h, g0, n_crossings, dt, max_s
 
 
 def poincare_section(
-    vector_field: Callable, energy: Callable, params, points, *, h: float, g0: float, n_crossings: int,
-    dt: float = 0.01, max_time: float = 1000.0, backward: bool = False, solver: str = "dopri8",
+    vector_field: Callable,
+    energy: Callable,
+    params,
+    points,
+    *,
+    h: float,
+    g0: float,
+    n_crossings: int,
+    dt: float = 0.01,
+    max_time: float = 1000.0,
+    backward: bool = False,
+    solver: str = "dopri8",
 ) -> PoincareSection:
     """The Poincaré map ``Φ_{h,g₀}`` of S2 (1.18) iterated from each of ``points``, vmapped.
 
@@ -162,6 +176,15 @@ def poincare_section(
     points = points.astype(dtype)
     params = _cast(params, dtype)
     return _section(
-        vector_field, energy, params, points, jnp.asarray(h, dtype), jnp.asarray(g0, dtype), int(n_crossings),
-        jnp.asarray(dt, dtype), round(max_time / dt), jnp.asarray(-1.0 if backward else 1.0, dtype), solver,
+        vector_field,
+        energy,
+        params,
+        points,
+        jnp.asarray(h, dtype),
+        jnp.asarray(g0, dtype),
+        int(n_crossings),
+        jnp.asarray(dt, dtype),
+        round(max_time / dt),
+        jnp.asarray(-1.0 if backward else 1.0, dtype),
+        solver,
     )

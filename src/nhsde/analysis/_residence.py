@@ -114,7 +114,8 @@ def _linearise(system, state, names, t, rtol):
             raise ValueError(
                 f"the linearised drift of {names} depends on {system.layout.names[rest[j]]!r} "
                 f"(∂a_{names[i]}/∂{system.layout.names[rest[j]]} = {coupling[i, j]:.3e}): these components are not a "
-                f"closed linear system at this state; include it in `components=` (stationary_spread) or choose a component "
+                "closed linear system at this state; include it in `components=` (stationary_spread) "
+                "or choose a component "
                 f"whose linearised row is closed (linear_residence_time)."
             )
     return a, q
@@ -170,7 +171,9 @@ def _components(system, components):
     return components
 
 
-def stationary_spread(system: StochasticSystem, state, *, components=None, t: float = 0.0, rtol: float = 1e-8) -> Spread:
+def stationary_spread(
+    system: StochasticSystem, state, *, components=None, t: float = 0.0, rtol: float = 1e-8
+) -> Spread:
     """Stationary covariance of the linearisation about a stable steady ``state`` (S0 §6, linear case).
 
     ``components`` (default: all but the dependent coordinates ``q''``) must form a
@@ -265,7 +268,11 @@ def linear_residence_time(
             f"≈ √π e^(ρ²)/(2κρ) is beyond any simulation and this quadrature; choose a smaller radius."
         )
     return LinearResidence(
-        mean=mean, rate=kappa, noise=noise, spread=noise / (2 * kappa), scaled_radius=rho,
+        mean=mean,
+        rate=kappa,
+        noise=noise,
+        spread=noise / (2 * kappa),
+        scaled_radius=rho,
         name=component,
     )
 
@@ -425,8 +432,17 @@ def residence_time(
     if n_steps % save_every:
         raise ValueError(f"save_every={save_every} must divide the {n_steps} steps of t1/dt.")
     ens = simulate(
-        system, state, key, n_paths=n_paths, t1=t1, dt=dt, solver=solver, brownian_dt=brownian_dt,
-        chunk_size=chunk_size, save=Save(None, n_steps // save_every + 1, paths=True), on_failure="exclude",
+        system,
+        state,
+        key,
+        n_paths=n_paths,
+        t1=t1,
+        dt=dt,
+        solver=solver,
+        brownian_dt=brownian_dt,
+        chunk_size=chunk_size,
+        save=Save(None, n_steps // save_every + 1, paths=True),
+        on_failure="exclude",
     )
     params = system.params
 
@@ -445,6 +461,13 @@ def residence_time(
         values - state[i], var, jnp.asarray(radius, values.dtype), spacing=spacing, t1=t1
     )
     return Residence(
-        times=times, grid_times=grid_times, survival=survival, censored=censored, failed=failed,
-        radius=jnp.asarray(radius, values.dtype), spacing=spacing, t1=t1, name=component,
+        times=times,
+        grid_times=grid_times,
+        survival=survival,
+        censored=censored,
+        failed=failed,
+        radius=jnp.asarray(radius, values.dtype),
+        spacing=spacing,
+        t1=t1,
+        name=component,
     )

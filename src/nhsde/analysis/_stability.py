@@ -22,6 +22,7 @@ from ._liouville import FAST_COMPILE
 
 __all__ = ["Stability", "jacobian", "linear_stability"]
 
+
 def require_float64(name: str, x) -> None:
     """Raise unless ``x`` is float64: the tolerances that separate zero, neutral and growing roots need it."""
     if jnp.asarray(x).dtype != jnp.float64:
@@ -49,7 +50,8 @@ class Stability(eqx.Module):
     ``roots``: the others; ``growth_rate = max Re(roots)``; ``verdict`` one of
     "asymptotically stable" (transversally to the family, S4 Theorem 4.1),
     "neutral" (none with ``Re μ`` above the tolerance of :func:`classify`, some within it:
-    marginal, the linear test is inconclusive) or "unstable"; ``residual``: ``|f(state)|`` when a vector field was given.
+    marginal, the linear test is inconclusive) or "unstable"; ``residual``: ``|f(state)|`` when a vector field was
+    given.
     """
 
     eigenvalues: Complex[Array, " n"]

@@ -81,7 +81,9 @@ class ChaplyginSystem(eqx.Module):
     def _slots(self):
         """Positions of ``r`` and ``s`` within the independent coordinates ``x``."""
         ind = self.form.elimination.independent
-        return np.array([ind.index(i) for i in self.positional], int), np.array([ind.index(i) for i in self.pseudo_cyclic], int)
+        return np.array([ind.index(i) for i in self.positional], int), np.array(
+            [ind.index(i) for i in self.pseudo_cyclic], int
+        )
 
     def _q(self, x):
         return self.reference.astype(x.dtype).at[self.form.elimination.ind].set(x)
@@ -165,7 +167,13 @@ class ChaplyginSystem(eqx.Module):
         k, n = self.k, self.spec.n
         r_slot, s_slot = self._slots()
         q = self.reference.astype(z.dtype).at[np.asarray(self.positional, int)].set(z[:k])
-        w = jnp.zeros(len(self.form.elimination.independent), z.dtype).at[r_slot].set(z[k : 2 * k]).at[s_slot].set(z[2 * k :])
+        w = (
+            jnp.zeros(len(self.form.elimination.independent), z.dtype)
+            .at[r_slot]
+            .set(z[k : 2 * k])
+            .at[s_slot]
+            .set(z[2 * k :])
+        )
         dy = self.form.drift(t, jnp.concatenate([q, w]), p)
         return jnp.concatenate([dy[np.asarray(self.positional, int)], dy[n:][r_slot], dy[n:][s_slot]])
 
@@ -275,7 +283,9 @@ def _check_structure(spec):
             "systems; give a spec without random parameters."
         )
     if spec.holonomic is not None or spec.servo is not None:
-        raise ValueError("holonomic or servo-constraints given: S4 (4.1) has only linear homogeneous constraints N(z)ż = 0.")
+        raise ValueError(
+            "holonomic or servo-constraints given: S4 (4.1) has only linear homogeneous constraints N(z)ż = 0."
+        )
 
 
 def _check_conservative(survey, qs, vs):
@@ -287,7 +297,8 @@ def _check_conservative(survey, qs, vs):
         if not _negligible(*out["forces"]):
             raise ValueError(
                 f"the spec's forces and dissipation give Q = {np.asarray(out['forces'][0])} at {where}, "
-                f"q̇={np.round(np.asarray(v), 4).tolist()}: S4 treats conservative systems (set friction and forces to zero)."
+                f"q̇={np.round(np.asarray(v), 4).tolist()}: S4 treats conservative systems (set "
+                "friction and forces to zero)."
             )
         for name in ("mass matrix", "potential", "constraints"):
             if not _negligible(*out["time " + name]):
@@ -352,7 +363,8 @@ def chaplygin_system(spec: MechanicalSpec, dependent, reference, *, samples: int
         omega = np.asarray(_survey_reduced(probe, q[ind])[1])
         if not _negligible(omega[np.ix_(slot, slot, slot)], np.max(np.abs(omega))):
             raise ValueError(
-                f"Ω_sss ≠ 0 for s = {_names(spec, pseudo_cyclic)} at q={np.round(np.asarray(q), 4).tolist()}: condition "
+                f"Ω_sss ≠ 0 for s = {_names(spec, pseudo_cyclic)} "
+                f"at q={np.round(np.asarray(q), 4).tolist()}: condition "
                 "(4.8) fails, and steady motions other than equilibria need (4.12) as well (S4 Remark 4.1)."
             )
     return system
@@ -392,8 +404,14 @@ def _evaluate(system, p, fixed_slots, free_slots, fixed, free):
     terms, (du, dv, dw) = system._about(u[:k], u[k:], p)
     parts_jac = -jnp.concatenate([du[:, :k, :k], dv[:, :k, k:]], axis=2)
     linear = tuple(jnp.sum(a, axis=0) for a in (dw, dv, du))
-    return (-jnp.sum(terms[:, :k], axis=0), jnp.sum(jnp.abs(terms[:, :k]), axis=0), jnp.sum(parts_jac, axis=0),
-            jnp.sum(jnp.abs(parts_jac), axis=0), linear, u)
+    return (
+        -jnp.sum(terms[:, :k], axis=0),
+        jnp.sum(jnp.abs(terms[:, :k]), axis=0),
+        jnp.sum(parts_jac, axis=0),
+        jnp.sum(jnp.abs(parts_jac), axis=0),
+        linear,
+        u,
+    )
 
 
 def _rank_cut(jac_size):
@@ -459,7 +477,9 @@ def steady_motions(system: ChaplyginSystem, family: dict, guess: dict | None = N
     start = _values(system, guess or {}, "guess")
     batch = np.broadcast_shapes(*(v.shape for v in fixed.values()))
     if len(batch) != 1:
-        raise ValueError(f"family values have shapes {[v.shape for v in fixed.values()]}; expected scalars or 1-d arrays.")
+        raise ValueError(
+            f"family values have shapes {[v.shape for v in fixed.values()]}; expected scalars or 1-d arrays."
+        )
     fixed_slots = np.array([names.index(n) for n in fixed], int)
     free_slots = np.array([i for i in range(len(names)) if i not in fixed_slots], int)
     default = np.concatenate([np.asarray(system.reference)[list(system.positional)], np.ones(system.m)])
@@ -469,7 +489,14 @@ def steady_motions(system: ChaplyginSystem, family: dict, guess: dict | None = N
     pad = -batch[0] % _CHUNK
     values_p, free_p = (np.concatenate([a, np.repeat(a[-1:], pad, axis=0)]) for a in (values, free0))
     chunks = [
-        _solve(system, p, fixed_slots, free_slots, jnp.asarray(values_p[i : i + _CHUNK]), jnp.asarray(free_p[i : i + _CHUNK]))
+        _solve(
+            system,
+            p,
+            fixed_slots,
+            free_slots,
+            jnp.asarray(values_p[i : i + _CHUNK]),
+            jnp.asarray(free_p[i : i + _CHUNK]),
+        )
         for i in range(0, len(values_p), _CHUNK)
     ]
     u, res, scale, full, cut, linear = jax.tree_util.tree_map(lambda *a: jnp.concatenate(a)[: batch[0]], *chunks)
@@ -536,7 +563,9 @@ def steady_stability(
     check = None
     if drift:
         state = system.steady_state(r, sdot)
-        check = linear_stability(system.reduced_field, state, system.spec.params, n_family=motions.family_dimension[index], rtol=rtol)
+        check = linear_stability(
+            system.reduced_field, state, system.spec.params, n_family=motions.family_dimension[index], rtol=rtol
+        )
     sym = lambda a: jnp.asarray(0.5 * (a + a.T))
     skew = lambda a: jnp.asarray(0.5 * (a - a.T))
     return SteadyStability(jnp.asarray(a0), skew(b0), sym(b0), sym(k0), skew(k0), routh, check, linear)
@@ -561,7 +590,13 @@ class StabilityBoundary(eqx.Module):
 
 
 def stability_boundary(
-    system: ChaplyginSystem, start: dict, stop: dict, guess: dict | None = None, *, xtol: float = 1e-14, rtol: float = 1e-8
+    system: ChaplyginSystem,
+    start: dict,
+    stop: dict,
+    guess: dict | None = None,
+    *,
+    xtol: float = 1e-14,
+    rtol: float = 1e-8,
 ) -> StabilityBoundary:
     """Bisect the segment ``start → stop`` of family parameters for the change of verdict.
 

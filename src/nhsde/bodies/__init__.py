@@ -13,31 +13,37 @@
 """
 
 from ._body import RigidBody as RigidBody
-from ._catalogue import balanced_ball_integral as balanced_ball_integral
-from ._catalogue import balanced_ball_measure as balanced_ball_measure
-from ._catalogue import ball_in_cavity_integral as ball_in_cavity_integral
-from ._catalogue import ellipsoid_inertia as ellipsoid_inertia
-from ._catalogue import ellipsoid_measure as ellipsoid_measure
-from ._catalogue import flat_base_integral as flat_base_integral
-from ._catalogue import flat_base_measure as flat_base_measure
-from ._catalogue import revolution_integral as revolution_integral
-from ._catalogue import revolution_measure as revolution_measure
-from ._catalogue import spherical_inertia_measure as spherical_inertia_measure
-from ._catalogue import unbalanced_ball_integral as unbalanced_ball_integral
-from ._rolling import FlatBaseField as FlatBaseField
-from ._rolling import FlatBaseParameters as FlatBaseParameters
-from ._rolling import RollingField as RollingField
-from ._rolling import RollingParameters as RollingParameters
-from ._rolling import angular_acceleration as angular_acceleration
-from ._rolling import contact_inertia as contact_inertia
-from ._rolling import contact_kinematics as contact_kinematics
-from ._rolling import flat_base_energy as flat_base_energy
-from ._rolling import position_rates as position_rates
-from ._rolling import rolling_energy as rolling_energy
-from ._surfaces import AbstractSurface as AbstractSurface
-from ._surfaces import BodyOfRevolution as BodyOfRevolution
-from ._surfaces import Disk as Disk
-from ._surfaces import Ellipsoid as Ellipsoid
-from ._surfaces import ImplicitSurface as ImplicitSurface
-from ._surfaces import Sphere as Sphere
-from ._surfaces import SphericalCavity as SphericalCavity
+from ._catalogue import (
+    balanced_ball_integral as balanced_ball_integral,
+    balanced_ball_measure as balanced_ball_measure,
+    ball_in_cavity_integral as ball_in_cavity_integral,
+    ellipsoid_inertia as ellipsoid_inertia,
+    ellipsoid_measure as ellipsoid_measure,
+    flat_base_integral as flat_base_integral,
+    flat_base_measure as flat_base_measure,
+    revolution_integral as revolution_integral,
+    revolution_measure as revolution_measure,
+    spherical_inertia_measure as spherical_inertia_measure,
+    unbalanced_ball_integral as unbalanced_ball_integral,
+)
+from ._rolling import (
+    FlatBaseField as FlatBaseField,
+    FlatBaseParameters as FlatBaseParameters,
+    RollingField as RollingField,
+    RollingParameters as RollingParameters,
+    angular_acceleration as angular_acceleration,
+    contact_inertia as contact_inertia,
+    contact_kinematics as contact_kinematics,
+    flat_base_energy as flat_base_energy,
+    position_rates as position_rates,
+    rolling_energy as rolling_energy,
+)
+from ._surfaces import (
+    AbstractSurface as AbstractSurface,
+    BodyOfRevolution as BodyOfRevolution,
+    Disk as Disk,
+    Ellipsoid as Ellipsoid,
+    ImplicitSurface as ImplicitSurface,
+    Sphere as Sphere,
+    SphericalCavity as SphericalCavity,
+)

@@ -27,7 +27,9 @@ class RigidBody(AbstractParameters):
 
     def __init__(self, *, mass=1.0, inertia=(1.0, 1.0, 1.0), surface: AbstractSurface, gyrostat=(0.0, 0.0, 0.0)):
         if not isinstance(surface, AbstractSurface):
-            raise TypeError(f"RigidBody: surface={surface!r}; expected a surface, e.g. nhsde.bodies.Sphere(radius=1.0).")
+            raise TypeError(
+                f"RigidBody: surface={surface!r}; expected a surface, e.g. nhsde.bodies.Sphere(radius=1.0)."
+            )
         inertia = jnp.asarray(inertia)
         if inertia.shape == (3,):
             inertia = jnp.diag(inertia)

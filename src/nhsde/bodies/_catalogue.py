@@ -59,7 +59,9 @@ def _ball(p: RollingParameters, *, balanced: bool):
 
 def _plane(p: RollingParameters) -> None:
     if _concrete(p.curvature):
-        _require(float(p.curvature) == 0.0, f"this formula is for the plane (curvature 0); got k={float(p.curvature):g}.")
+        _require(
+            float(p.curvature) == 0.0, f"this formula is for the plane (curvature 0); got k={float(p.curvature):g}."
+        )
 
 
 def _ball_j(p: RollingParameters):
@@ -92,7 +94,7 @@ def balanced_ball_integral(y, p: RollingParameters):
 def ball_in_cavity_integral(y, p: RollingParameters):
     """At ``κ = −1`` (cavity of radius ``R = 2a`` over a sphere of radius ``a``), S2 §4.3:
 
-        F = [(Jω, Jω) + det J (ω, Jω)(J⁻¹γ, J⁻¹γ)] / (γ, J⁻¹γ).
+    F = [(Jω, Jω) + det J (ω, Jω)(J⁻¹γ, J⁻¹γ)] / (γ, J⁻¹γ).
     """
     j, surface = _ball_j(p)
     if _concrete(p.curvature, surface.radius):
@@ -160,7 +162,8 @@ def spherical_inertia_measure(y, p: RollingParameters):
 
 
 def ellipsoid_inertia(semi_axes, mass, alpha, beta):
-    """Principal moments on the hyperboloid (3.8), parametrised by S2 (3.9): ``I_k = m det B (α + a_k⁻²)/(β + a_k²)``."""
+    """Principal moments on the hyperboloid (3.8), parametrised by S2 (3.9): ``I_k = m det B (α + a_k⁻²)/(β +
+    a_k²)``."""
     a2 = jnp.asarray(semi_axes) ** 2
     return mass * jnp.prod(a2) * (alpha + 1.0 / a2) / (beta + a2)
 
@@ -186,9 +189,9 @@ def ellipsoid_measure(y, p: RollingParameters):
     if _concrete(inertia, a2):
         off = np.asarray(lhs @ jnp.stack([alpha, beta]) - rhs)
         _require(
-            bool(np.all(np.abs(off) <= 1e-9 * np.max(np.abs(np.asarray(rhs))))) and
-            bool(np.all(np.asarray(p.body.inertia) == np.diag(np.asarray(inertia)))) and
-            bool(np.all(np.asarray(surface.offset) == 0)),
+            bool(np.all(np.abs(off) <= 1e-9 * np.max(np.abs(np.asarray(rhs)))))
+            and bool(np.all(np.asarray(p.body.inertia) == np.diag(np.asarray(inertia))))
+            and bool(np.all(np.asarray(surface.offset) == 0)),
             "this formula needs principal axes along the semi-axes, the centre of mass at the centre and the "
             f"inertia on the hyperboloid S2 (3.8); (3.9) is off by {off.tolist()}.",
         )

@@ -196,7 +196,8 @@ def check_rolling_configuration(p: RollingParameters, sphere: bool) -> None:
         radii = np.asarray(jax.vmap(surface.curvature_radii)(jnp.asarray(fibonacci_directions(64))))
         if np.any(1.0 + k * radii <= 0):
             raise ValueError(
-                f"curvature k={k:g}: the body (radii of curvature up to {float(np.max(radii)):.4g}) does not fit inside "
+                f"curvature k={k:g}: the body (radii of curvature up to {float(np.max(radii)):.4g}) "
+                "does not fit inside "
                 f"the spherical shell of radius {abs(1 / k):.4g}: 1 + k·ρ must stay > 0."
             )
 
@@ -205,7 +206,9 @@ class FlatBaseParameters(AbstractParameters):
     """A body touching a fixed sphere with a flat base, S2 §4.5: the base is the body plane ``x₃ = z``."""
 
     mass: jnp.ndarray = parameter(default=1.0, lower=0.0, strict=True, doc="mass m")
-    inertia: jnp.ndarray = parameter(default=(1.0, 1.0, 1.0), lower=0.0, strict=True, doc="principal moments I₁, I₂, I₃")
+    inertia: jnp.ndarray = parameter(
+        default=(1.0, 1.0, 1.0), lower=0.0, strict=True, doc="principal moments I₁, I₂, I₃"
+    )
     z: jnp.ndarray = parameter(default=-1.0, doc="z = r₃, the base plane x₃ = z (negative: centre of mass above it)")
     curvature: jnp.ndarray = parameter(default=1.0, lower=0.0, strict=True, doc="curvature k = 1/a of the sphere")
 
@@ -229,7 +232,8 @@ class FlatBaseField(eqx.Module):
     @property
     def layout(self) -> StateLayout:
         return StateLayout(
-            ("omega_1", "omega_2", "r_1", "r_2"), ("velocity", "velocity", "independent_coordinate", "independent_coordinate")
+            ("omega_1", "omega_2", "r_1", "r_2"),
+            ("velocity", "velocity", "independent_coordinate", "independent_coordinate"),
         )
 
     def __call__(self, t, y, p: FlatBaseParameters):
@@ -239,8 +243,16 @@ class FlatBaseField(eqx.Module):
         r = jnp.stack([y[2], y[3], p.z.astype(y.dtype)])
         r_dot = jnp.cross(omega, n) / p.curvature
         acc = angular_acceleration(
-            jnp.diag(p.inertia), p.mass, jnp.zeros(3, y.dtype), omega, n, jnp.zeros(3, y.dtype), r, r_dot,
-            jnp.zeros(3, y.dtype), rubber=True,
+            jnp.diag(p.inertia),
+            p.mass,
+            jnp.zeros(3, y.dtype),
+            omega,
+            n,
+            jnp.zeros(3, y.dtype),
+            r,
+            r_dot,
+            jnp.zeros(3, y.dtype),
+            rubber=True,
         )
         return jnp.concatenate([acc[:2], r_dot[:2]])
 

@@ -247,7 +247,8 @@ class ImplicitSurface(AbstractSurface):
         inside = float(self.f(jnp.zeros(3), self.shape))
         if not inside < 0:
             raise ValueError(
-                f"ImplicitSurface: f(0) = {inside:.4g}; the centre of mass (the origin) must be inside the body, f(0) < 0."
+                f"ImplicitSurface: f(0) = {inside:.4g}; the centre of mass (the origin) must be "
+                "inside the body, f(0) < 0."
             )
         dirs = fibonacci_directions(128)
         residual = np.asarray(jax.jit(jax.vmap(self._residual))(jnp.asarray(dirs)))
@@ -283,7 +284,11 @@ class ImplicitSurface(AbstractSurface):
     def _residual(self, n):
         x, lam = self._solve(n)
         grad = jax.grad(self.f)(x, self.shape)
-        return jnp.linalg.norm(grad + lam * n) / jnp.abs(lam) + jnp.abs(self.f(x, self.shape)) + jnp.where(lam > 0, 0.0, 1.0)
+        return (
+            jnp.linalg.norm(grad + lam * n) / jnp.abs(lam)
+            + jnp.abs(self.f(x, self.shape))
+            + jnp.where(lam > 0, 0.0, 1.0)
+        )
 
     def _contact(self, n):
         x, lam = jax.lax.stop_gradient(self._solve(n))

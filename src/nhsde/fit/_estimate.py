@@ -87,8 +87,15 @@ class Simulated(AbstractStatisticsModel):
     def _run(self, system, ts, names, paths):
         index = _save_grid(ts, self.t0, "Simulated")
         ens = simulate(
-            system, self.y0, self.key, n_paths=self.n_paths, t0=self.t0, t1=float(ts[-1]), dt=self.dt,
-            solver=self.solver, save=Save(names=names, n=int(index[-1]) + 1, paths=paths),
+            system,
+            self.y0,
+            self.key,
+            n_paths=self.n_paths,
+            t0=self.t0,
+            t1=float(ts[-1]),
+            dt=self.dt,
+            solver=self.solver,
+            save=Save(names=names, n=int(index[-1]) + 1, paths=paths),
         )
         return ens, index
 
@@ -121,8 +128,14 @@ class MomentEquations(AbstractStatisticsModel):
 
         index = _save_grid(ts, self.t0, "MomentEquations")
         ens = normal_approximation(
-            system, self.y0, self.cov0, t0=self.t0, t1=float(ts[-1]), dt=self.dt,
-            save=Save(names=names, n=int(index[-1]) + 1), order=self.order,
+            system,
+            self.y0,
+            self.cov0,
+            t0=self.t0,
+            t1=float(ts[-1]),
+            dt=self.dt,
+            save=Save(names=names, n=int(index[-1]) + 1),
+            order=self.order,
         )
         return ens.mean[index], ens.cov[index]
 
@@ -244,7 +257,9 @@ class FitResult:
 
     def __str__(self):
         rows = [f"{'parameter':<12}{'estimate':>14}{'std. error':>14}{'start':>12}"]
-        rows += [f"{n:<12}{v:>14.6g}{s:>14.3g}{i:>12.4g}" for n, v, s, i in zip(self.names, self.values, self.se, self.init)]
+        rows += [
+            f"{n:<12}{v:>14.6g}{s:>14.3g}{i:>12.4g}" for n, v, s, i in zip(self.names, self.values, self.se, self.init)
+        ]
         rows.append(
             f"chi2 = {self.chi2:.2f} on {self.dof} degrees of freedom; {self.steps} optimizer steps"
             + ("" if self.converged else " (NOT converged)")
@@ -289,9 +304,7 @@ def estimate(
     if not isinstance(observed, Observations):
         raise TypeError(f"observed={type(observed).__name__}; expected nhsde.fit.Observations.")
     if not isinstance(model, AbstractStatisticsModel):
-        raise TypeError(
-            f"model={type(model).__name__}; expected nhsde.fit.Simulated, MomentEquations or ClosedForm."
-        )
+        raise TypeError(f"model={type(model).__name__}; expected nhsde.fit.Simulated, MomentEquations or ClosedForm.")
     vary = tuple(vary)
     if not vary or len(set(vary)) != len(vary):
         raise ValueError(f"vary={vary}; name each parameter to fit once.")
@@ -304,7 +317,9 @@ def estimate(
     theta0 = np.array([float(init.get(n, getattr(system.params, n))) for n in vary])
     for name, value, lo in zip(vary, theta0, lower):
         if lo is not None and not value > lo:
-            raise ValueError(f"init: {name}={value} must be > {lo} to start a fit (it is optimised as log({name} − {lo})).")
+            raise ValueError(
+                f"init: {name}={value} must be > {lo} to start a fit (it is optimised as log({name} − {lo}))."
+            )
     max_steps = int(max_steps)
     if max_steps < 1:
         raise ValueError(f"max_steps={max_steps}; must be ≥ 1.")
@@ -313,8 +328,14 @@ def estimate(
     cov_obs = np.asarray(observed.covariance, np.float64)
     whiten = np.linalg.inv(np.linalg.cholesky(cov_obs))
     problem = _Problem(
-        system=system, model=model, observed=jnp.asarray(observed.statistics(), dtype), whiten=jnp.asarray(whiten, dtype),
-        ts=tuple(float(t) for t in observed.ts), names=observed.names, vary=vary, lower=lower,
+        system=system,
+        model=model,
+        observed=jnp.asarray(observed.statistics(), dtype),
+        whiten=jnp.asarray(whiten, dtype),
+        ts=tuple(float(t) for t in observed.ts),
+        names=observed.names,
+        vary=vary,
+        lower=lower,
     )
     optimizer = _lbfgs() if optimizer is None else optax.with_extra_args_support(optimizer)
     phi = jnp.asarray([t if lo is None else np.log(t - lo) for t, lo in zip(theta0, lower)], dtype)
@@ -347,6 +368,13 @@ def estimate(
     r = np.asarray(problem.statistics(theta), np.float64) - observed.statistics()
     chi2 = float(r @ np.linalg.solve(cov_obs + cov_model, r))
     return FitResult(
-        names=vary, values=np.asarray(theta, np.float64), cov=0.5 * (cov + cov.T), init=theta0, chi2=chi2,
-        dof=observed.size - len(vary), steps=steps, converged=converged, history=np.asarray(history),
+        names=vary,
+        values=np.asarray(theta, np.float64),
+        cov=0.5 * (cov + cov.T),
+        init=theta0,
+        chi2=chi2,
+        dof=observed.size - len(vary),
+        steps=steps,
+        converged=converged,
+        history=np.asarray(history),
     )

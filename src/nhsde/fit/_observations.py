@@ -76,7 +76,9 @@ class Observations(eqx.Module):
             raise ValueError(f"Observations: ts={np.asarray(self.ts).tolist()} must increase strictly.")
         size = statistic_size(t, k)
         if np.shape(self.covariance) != (size, size):
-            raise ValueError(f"Observations: covariance has shape {np.shape(self.covariance)}; expected ({size}, {size}).")
+            raise ValueError(
+                f"Observations: covariance has shape {np.shape(self.covariance)}; expected ({size}, {size})."
+            )
         var = np.diag(self.covariance)
         if not np.all(np.isfinite(self.covariance)) or np.any(var <= 0):
             bad = statistic_labels(self.ts, self.names)[int(np.argmin(np.where(np.isfinite(var), var, -1.0)))]
@@ -104,8 +106,13 @@ class Observations(eqx.Module):
             )
         c = z - z.mean(0)
         return cls(
-            ts=ts, mean=z.mean(0), cov=np.einsum("pti,ptj->tij", c, c) / (n - 1),
-            covariance=statistic_covariance(z), names=names, n_paths=n, from_trajectories=True,
+            ts=ts,
+            mean=z.mean(0),
+            cov=np.einsum("pti,ptj->tij", c, c) / (n - 1),
+            covariance=statistic_covariance(z),
+            names=names,
+            n_paths=n,
+            from_trajectories=True,
         )
 
     @classmethod
@@ -122,7 +129,12 @@ class Observations(eqx.Module):
             raise ValueError(f"n_paths={n_paths}; must be ≥ 2.")
         se = np.asarray(statistic_vector(mean_se, cov_se))
         return cls(
-            ts=ts, mean=mean, cov=cov, covariance=np.diag(se**2), names=tuple(str(n) for n in names), n_paths=n_paths,
+            ts=ts,
+            mean=mean,
+            cov=cov,
+            covariance=np.diag(se**2),
+            names=tuple(str(n) for n in names),
+            n_paths=n_paths,
             from_trajectories=False,
         )
 

@@ -9,20 +9,22 @@ with multipliers, or Gauss's principle of least compulsion
 state-space equations (S3) and reports their singularity.
 """
 
-from ._elimination import Elimination as Elimination
-from ._elimination import choose_dependent as choose_dependent
-from ._forms import ROUTES as ROUTES
-from ._forms import AbstractForm as AbstractForm
-from ._forms import GaussForm as GaussForm
-from ._forms import HamiltonianForm as HamiltonianForm
-from ._forms import MultiplierForm as MultiplierForm
-from ._forms import ReducedForm as ReducedForm
-from ._forms import build as build
-from ._forms import formulate as formulate
-from ._forms import project_velocity as project_velocity
-from ._spec import MechanicalSpec as MechanicalSpec
-from ._spec import ServoConstraint as ServoConstraint
-from ._state_space import SingularStateSpaceError as SingularStateSpaceError
-from ._state_space import StateSpace as StateSpace
-from ._state_space import StateSpaceReport as StateSpaceReport
-from ._state_space import state_space as state_space
+from ._elimination import Elimination as Elimination, choose_dependent as choose_dependent
+from ._forms import (
+    ROUTES as ROUTES,
+    AbstractForm as AbstractForm,
+    GaussForm as GaussForm,
+    HamiltonianForm as HamiltonianForm,
+    MultiplierForm as MultiplierForm,
+    ReducedForm as ReducedForm,
+    build as build,
+    formulate as formulate,
+    project_velocity as project_velocity,
+)
+from ._spec import MechanicalSpec as MechanicalSpec, ServoConstraint as ServoConstraint
+from ._state_space import (
+    SingularStateSpaceError as SingularStateSpaceError,
+    StateSpace as StateSpace,
+    StateSpaceReport as StateSpaceReport,
+    state_space as state_space,
+)

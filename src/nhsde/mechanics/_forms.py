@@ -85,7 +85,9 @@ def _checked_state(spec, elim, q, pi, t):
     rows, _ = spec.velocity_constraints(q, pi, t, p)
     if rows.shape[0]:
         sv = jnp.linalg.svd(rows, compute_uv=False)
-        q = eqx.error_if(q, sv[-1] <= 1e-10 * sv[0], "the constraint rows are dependent (rank-deficient) at this state.")
+        q = eqx.error_if(
+            q, sv[-1] <= 1e-10 * sv[0], "the constraint rows are dependent (rank-deficient) at this state."
+        )
     if elim is not None and elim.dependent:
         sv = jnp.linalg.svd(rows[:, elim.dep], compute_uv=False)
         q = eqx.error_if(
@@ -185,7 +187,9 @@ class AbstractForm(eqx.Module):
         q, qdot, pi, t = _inputs(spec, q, qdot, pi, t)
         q = _checked_state(spec, self.elimination, q, pi, t)
         y, p = self.state(q, qdot, pi, t), spec.params
-        return jax.jvp(lambda t, y: self.velocities(t, y, p)[1], (t, y), (jnp.ones((), t.dtype), self.drift(t, y, p)))[1]
+        return jax.jvp(lambda t, y: self.velocities(t, y, p)[1], (t, y), (jnp.ones((), t.dtype), self.drift(t, y, p)))[
+            1
+        ]
 
     def acceleration_noise(self, q, qdot, pi=None, t=0.0):
         """``∂q̇/∂Z b``, shape ``(n, l)``: the accelerations' response to the white noise ``V``."""
@@ -215,7 +219,8 @@ class AbstractForm(eqx.Module):
             layout=layout,
             noise_dim=self.spec.noise_dim,
             additive_noise=additive,
-            observables=observables + tuple((name, _Field(form, kind, i)) for name, kind, i in self._extra_observables()),
+            observables=observables
+            + tuple((name, _Field(form, kind, i)) for name, kind, i in self._extra_observables()),
         )
 
 

@@ -34,9 +34,7 @@ def lagrange_terms(spec: MechanicalSpec, q, v, pi, t, p):
 
     ``h = d/dt(∂T/∂q̇)|_{q̈=0} − ∂T/∂q − (Q¹ − ∂Π/∂q − ∂R/∂q̇)`` (S0 (1.6)).
     """
-    _, d_momentum = jax.jvp(
-        lambda q, t: jax.grad(spec.kinetic, argnums=1)(q, v, pi, t, p), (q, t), (v, _one(t))
-    )
+    _, d_momentum = jax.jvp(lambda q, t: jax.grad(spec.kinetic, argnums=1)(q, v, pi, t, p), (q, t), (v, _one(t)))
     h = d_momentum - jax.grad(spec.kinetic)(q, v, pi, t, p) - spec.applied_force(q, v, pi, t, p)
     return spec.inertia(q, pi, t, p), h
 

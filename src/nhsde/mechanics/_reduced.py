@@ -49,9 +49,7 @@ def _nonholonomic(spec, elim, q, w, v, psi, pi, t, p):
     """
     if not elim.dependent:
         return jnp.zeros_like(w)
-    (bp_q, bp_t), (bpp_q, _) = jax.jacfwd(
-        lambda q, t: elim.velocity_basis(spec, q, pi, t, p)[2:], argnums=(0, 1)
-    )(q, t)
+    (bp_q, bp_t), (bpp_q, _) = jax.jacfwd(lambda q, t: elim.velocity_basis(spec, q, pi, t, p)[2:], argnums=(0, 1))(q, t)
     b_prime_dot = bp_q @ v + bp_t
     jac_lambda = jnp.einsum("isk,s->ik", bp_q, w) + bpp_q
     p_dependent = jax.grad(spec.kinetic, argnums=1)(q, v, pi, t, p)[elim.dep]
@@ -69,9 +67,7 @@ def voronets(spec: MechanicalSpec, elim: Elimination, q, w, pi, t, p):
     psi, b, b_prime, _ = elim.velocity_basis(spec, q, pi, t, p)
     v = psi @ w + b
     g = jax.hessian(lambda w: spec.kinetic(q, psi @ w + b, pi, t, p))(w)
-    (grad_t, _), (_, d_momentum) = jax.jvp(
-        lambda q, t: jax.grad(t_star, argnums=(0, 1))(q, w, t), (q, t), (v, _one(t))
-    )
+    (grad_t, _), (_, d_momentum) = jax.jvp(lambda q, t: jax.grad(t_star, argnums=(0, 1))(q, w, t), (q, t), (v, _one(t)))
     grad_l = grad_t - jax.grad(spec.potential_energy)(q, pi, t, p)
     grad_r = jax.grad(lambda w: spec.rayleigh(q, psi @ w + b, pi, t, p))(w)
     rhs = (

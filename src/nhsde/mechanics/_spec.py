@@ -149,13 +149,22 @@ class MechanicalSpec(eqx.Module):
         if servo is not None and not isinstance(servo, ServoConstraint):
             raise TypeError(f"MechanicalSpec: servo={type(servo).__name__}; expected a ServoConstraint.")
         functions = {
-            "kinetic_energy": kinetic_energy, "mass_matrix": mass_matrix, "potential": potential,
-            "dissipation": dissipation, "force": force, "noise_force": noise_force, "constraints": constraints,
-            "constraint_bias": constraint_bias, "holonomic": holonomic, "random_drift": random_drift,
+            "kinetic_energy": kinetic_energy,
+            "mass_matrix": mass_matrix,
+            "potential": potential,
+            "dissipation": dissipation,
+            "force": force,
+            "noise_force": noise_force,
+            "constraints": constraints,
+            "constraint_bias": constraint_bias,
+            "holonomic": holonomic,
+            "random_drift": random_drift,
             "random_diffusion": random_diffusion,
         }
         if servo is not None:
-            functions.update({"servo.matrix": servo.matrix, "servo.realisation": servo.realisation, "servo.bias": servo.bias})
+            functions.update(
+                {"servo.matrix": servo.matrix, "servo.realisation": servo.realisation, "servo.bias": servo.bias}
+            )
         for name, fn in functions.items():
             if fn is not None and not callable(fn):
                 raise TypeError(f"MechanicalSpec: {name}={fn!r} is not callable.")
@@ -190,7 +199,9 @@ class MechanicalSpec(eqx.Module):
         t, p = jnp.zeros(()), self.params
         pos, vel = (q, pi, t, p), (q, v, pi, t, p)
         if self.kinetic_energy is not None:
-            _expect("kinetic_energy", _VELOCITY, _traced_shape("kinetic_energy", _VELOCITY, self.kinetic_energy, vel), ())
+            _expect(
+                "kinetic_energy", _VELOCITY, _traced_shape("kinetic_energy", _VELOCITY, self.kinetic_energy, vel), ()
+            )
         else:
             _expect("mass_matrix", _POSITION, _traced_shape("mass_matrix", _POSITION, self.mass_matrix, pos), (n, n))
         for name, fn, args, sig in (
@@ -211,7 +222,12 @@ class MechanicalSpec(eqx.Module):
                 )
             m = shape[0]
             if self.constraint_bias is not None:
-                _expect("constraint_bias", _POSITION, _traced_shape("constraint_bias", _POSITION, self.constraint_bias, pos), (m,))
+                _expect(
+                    "constraint_bias",
+                    _POSITION,
+                    _traced_shape("constraint_bias", _POSITION, self.constraint_bias, pos),
+                    (m,),
+                )
         h = 0
         if self.holonomic is not None:
             shape = _traced_shape("holonomic", _POSITION, self.holonomic, pos)
@@ -224,13 +240,17 @@ class MechanicalSpec(eqx.Module):
             if len(shape) != 2 or shape[1] != n:
                 raise ValueError(f"MechanicalSpec: servo.matrix{_POSITION} returned shape {shape}; expected (s, {n}).")
             s = shape[0]
-            _expect("servo.realisation", _POSITION, _traced_shape("servo.realisation", _POSITION, self.servo.realisation, pos), (s, n))
+            _expect(
+                "servo.realisation",
+                _POSITION,
+                _traced_shape("servo.realisation", _POSITION, self.servo.realisation, pos),
+                (s, n),
+            )
             if self.servo.bias is not None:
                 _expect("servo.bias", _POSITION, _traced_shape("servo.bias", _POSITION, self.servo.bias, pos), (s,))
         if m + h + s >= n:
             raise ValueError(
-                f"MechanicalSpec: {m + h + s} constraints on {n} coordinates leave no motion; "
-                f"need fewer than n = {n}."
+                f"MechanicalSpec: {m + h + s} constraints on {n} coordinates leave no motion; need fewer than n = {n}."
             )
         channels = None
         if self.noise_force is not None:
@@ -239,7 +259,12 @@ class MechanicalSpec(eqx.Module):
                 raise ValueError(f"MechanicalSpec: noise_force{_VELOCITY} returned shape {shape}; expected ({n}, l).")
             channels = shape[1]
         if k:
-            _expect("random_drift", "(pi, t, p)", _traced_shape("random_drift", "(pi, t, p)", self.random_drift, (pi, t, p)), (k,))
+            _expect(
+                "random_drift",
+                "(pi, t, p)",
+                _traced_shape("random_drift", "(pi, t, p)", self.random_drift, (pi, t, p)),
+                (k,),
+            )
             if self.random_diffusion is not None:
                 shape = _traced_shape("random_diffusion", "(pi, t, p)", self.random_diffusion, (pi, t, p))
                 if len(shape) != 2 or shape[0] != k or (channels is not None and shape[1] != channels):
@@ -249,12 +274,19 @@ class MechanicalSpec(eqx.Module):
                         "(the same white noise V drives π and Q², S0 (1.2), (1.5))."
                     )
                 channels = shape[1]
-            kinematics = [("kinetic_energy", self.kinetic_energy, vel), ("mass_matrix", self.mass_matrix, pos),
-                          ("constraints", self.constraints, pos), ("constraint_bias", self.constraint_bias, pos),
-                          ("holonomic", self.holonomic, pos)]
+            kinematics = [
+                ("kinetic_energy", self.kinetic_energy, vel),
+                ("mass_matrix", self.mass_matrix, pos),
+                ("constraints", self.constraints, pos),
+                ("constraint_bias", self.constraint_bias, pos),
+                ("holonomic", self.holonomic, pos),
+            ]
             if self.servo is not None:
-                kinematics += [("servo.matrix", self.servo.matrix, pos), ("servo.bias", self.servo.bias, pos),
-                               ("servo.realisation", self.servo.realisation, pos)]
+                kinematics += [
+                    ("servo.matrix", self.servo.matrix, pos),
+                    ("servo.bias", self.servo.bias, pos),
+                    ("servo.realisation", self.servo.realisation, pos),
+                ]
             for name, fn, args in kinematics:
                 if fn is not None and depends_on(fn, args, len(args) - 3):
                     raise ValueError(
@@ -321,7 +353,9 @@ class MechanicalSpec(eqx.Module):
         if self.constraints is not None:
             a = self.constraints(q, pi, t, p)
             rows.append(a)
-            bias.append(jnp.zeros(a.shape[0], q.dtype) if self.constraint_bias is None else self.constraint_bias(q, pi, t, p))
+            bias.append(
+                jnp.zeros(a.shape[0], q.dtype) if self.constraint_bias is None else self.constraint_bias(q, pi, t, p)
+            )
         if self.holonomic is not None:
             f_q, f_t = jax.jacfwd(self.holonomic, argnums=(0, 2))(q, pi, t, p)
             rows.append(f_q)

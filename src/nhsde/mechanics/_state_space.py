@@ -102,7 +102,9 @@ class StateSpace(eqx.Module):
         spec, n = self.spec, self.spec.n
         xi = jnp.asarray(xi)
         q, w = xi[:n], xi[n:]
-        psi, b, _, _ = self.elimination.velocity_basis(spec, q, jnp.zeros(spec.k, q.dtype), jnp.asarray(t, q.dtype), spec.params)
+        psi, b, _, _ = self.elimination.velocity_basis(
+            spec, q, jnp.zeros(spec.k, q.dtype), jnp.asarray(t, q.dtype), spec.params
+        )
         return q, psi @ w + b
 
     @eqx.filter_jit
@@ -161,6 +163,8 @@ def state_space(spec: MechanicalSpec, *, dependent=None, reference=None) -> Stat
     if not isinstance(spec, MechanicalSpec):
         raise TypeError(f"spec={type(spec).__name__}; expected a MechanicalSpec.")
     if spec.k or spec.servo is not None:
-        raise ValueError("state_space: S3 treats deterministic systems with ideal constraints; this spec has "
-                         f"random parameters {spec.random_parameters} or servo-constraints.")
+        raise ValueError(
+            "state_space: S3 treats deterministic systems with ideal constraints; this spec has "
+            f"random parameters {spec.random_parameters} or servo-constraints."
+        )
     return StateSpace(spec, make_elimination(spec, dependent, reference))

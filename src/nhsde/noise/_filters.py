@@ -125,7 +125,9 @@ class FilteredParameters(eqx.Module):
 
     def replace(self, **changes):
         """Change parameters by name; names of the system's parameters go to the system, the rest to the filter."""
-        system_names = {f.name for f in dataclasses.fields(self.system)} if dataclasses.is_dataclass(self.system) else set()
+        system_names = (
+            {f.name for f in dataclasses.fields(self.system)} if dataclasses.is_dataclass(self.system) else set()
+        )
         mine = {k: v for k, v in changes.items() if k in system_names}
         rest = {k: v for k, v in changes.items() if k not in system_names}
         system = self.system.replace(**mine) if mine else self.system
@@ -142,7 +144,9 @@ class _FilteredDrift(eqx.Module):
 
     def __call__(self, t, y, p):
         pi, z = y[: self.k], y[self.k :]
-        return jnp.concatenate([p.filter.drift(t, pi), self.drift(t, z, p.system) + self.diffusion(t, z, p.system) @ pi])
+        return jnp.concatenate(
+            [p.filter.drift(t, pi), self.drift(t, z, p.system) + self.diffusion(t, z, p.system) @ pi]
+        )
 
 
 class _FilteredDiffusion(eqx.Module):
@@ -195,9 +199,7 @@ def with_shaping_filter(system, filter: AbstractShapingFilter):
         drift_fn=_FilteredDrift(drift, system.diffusion_fn, k),
         diffusion_fn=_FilteredDiffusion(k, system.state_dim),
         params=FilteredParameters(system.params, filter),
-        layout=StateLayout(
-            tuple(filter.names) + system.layout.names, ("random_parameter",) * k + system.layout.roles
-        ),
+        layout=StateLayout(tuple(filter.names) + system.layout.names, ("random_parameter",) * k + system.layout.roles),
         noise_dim=filter.noise_dim,
         interpretation="ito",
         additive_noise=filter.additive_noise,

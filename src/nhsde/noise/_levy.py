@@ -130,7 +130,8 @@ class ParetoJumps(AbstractJumpLaw):
             )
 
     def moment(self, k):
-        """``E[c^k]``: ``scale^k tail/(tail − k)`` for even ``k < tail``, 0 for odd ``k < tail``, else ``inf``/``nan``."""
+        """``E[c^k]``: ``scale^k tail/(tail − k)`` for even ``k < tail``, 0 for odd ``k < tail``, else
+        ``inf``/``nan``."""
         exists = self.tail > k
         if k % 2:
             return jnp.where(exists, 0.0, jnp.nan) * self.scale
@@ -236,5 +237,7 @@ def driver_intensity(driver: AbstractDriver, noise_dim: int, dtype=None) -> Arra
     elif isinstance(driver, (CompoundPoisson, Levy)):
         rate = driver.variance_rate().astype(dtype)
     else:
-        raise TypeError(f"driver {type(driver).__name__} declares no intensity; nhsde knows Wiener, CompoundPoisson, Levy.")
+        raise TypeError(
+            f"driver {type(driver).__name__} declares no intensity; nhsde knows Wiener, CompoundPoisson, Levy."
+        )
     return jnp.broadcast_to(rate, (noise_dim,))

@@ -5,23 +5,21 @@ and flags naming what the user wants to observe; ``build()`` returns a system
 whose state holds only what those need.
 """
 
-from ._ball import BallOnVibratingPlane as BallOnVibratingPlane
-from ._ball import BallParameters as BallParameters
-from ._ball import ball_covariances as ball_covariances
-from ._sleigh import ChaplyginSleigh as ChaplyginSleigh
-from ._sleigh import SleighParameters as SleighParameters
-from ._beghin import BeghinParameters as BeghinParameters
-from ._beghin import BeghinPlate as BeghinPlate
-from ._contact_oscillator import ContactOscillator as ContactOscillator
-from ._contact_oscillator import ContactOscillatorParameters as ContactOscillatorParameters
-from ._disk import DiskParameters as DiskParameters
-from ._disk import VerticalRollingDisk as VerticalRollingDisk
-from ._rolling_ball import BallFromLagrangian as BallFromLagrangian
-from ._rolling_ball import RollingBallParameters as RollingBallParameters
-from ._rolling_disk import RollingDisk as RollingDisk
-from ._rolling_disk import RollingDiskParameters as RollingDiskParameters
-from ._rotating_rod import BeadOnRotatingRod as BeadOnRotatingRod
-from ._rotating_rod import RodParameters as RodParameters
+from ._ball import (
+    BallOnVibratingPlane as BallOnVibratingPlane,
+    BallParameters as BallParameters,
+    ball_covariances as ball_covariances,
+)
+from ._beghin import BeghinParameters as BeghinParameters, BeghinPlate as BeghinPlate
+from ._contact_oscillator import (
+    ContactOscillator as ContactOscillator,
+    ContactOscillatorParameters as ContactOscillatorParameters,
+)
+from ._disk import DiskParameters as DiskParameters, VerticalRollingDisk as VerticalRollingDisk
+from ._rolling_ball import BallFromLagrangian as BallFromLagrangian, RollingBallParameters as RollingBallParameters
+from ._rolling_disk import RollingDisk as RollingDisk, RollingDiskParameters as RollingDiskParameters
+from ._rotating_rod import BeadOnRotatingRod as BeadOnRotatingRod, RodParameters as RodParameters
+from ._sleigh import ChaplyginSleigh as ChaplyginSleigh, SleighParameters as SleighParameters
 from ._spec_scene import AbstractSpecScene as AbstractSpecScene
 from ._spec_sleigh import ChaplyginSleighFromSpec as ChaplyginSleighFromSpec
 
@@ -46,17 +44,21 @@ def get_scene(name: str):
     except KeyError:
         raise ValueError(f"unknown scene {name!r}; known scenes: {', '.join(SCENES)}.") from None
 
-from ._body_on_vibrating_plane import BodyOnVibratingPlane as BodyOnVibratingPlane
-from ._body_on_vibrating_plane import VibratingPlaneParameters as VibratingPlaneParameters
-from ._body_on_vibrating_plane import revolution_measure_s0 as revolution_measure_s0
-from ._body_on_vibrating_plane import stationary_nutation_density as stationary_nutation_density
-from ._chaplygin_ball import ChaplyginBall as ChaplyginBall
-from ._chaplygin_ball import ChaplyginBallParameters as ChaplyginBallParameters
-from ._chaplygin_ball import chaplygin_ball_measure as chaplygin_ball_measure
-from ._chaplygin_ball import chaplygin_ball_omega as chaplygin_ball_omega
+
+from ._body_on_vibrating_plane import (
+    BodyOnVibratingPlane as BodyOnVibratingPlane,
+    VibratingPlaneParameters as VibratingPlaneParameters,
+    revolution_measure_s0 as revolution_measure_s0,
+    stationary_nutation_density as stationary_nutation_density,
+)
+from ._chaplygin_ball import (
+    ChaplyginBall as ChaplyginBall,
+    ChaplyginBallParameters as ChaplyginBallParameters,
+    chaplygin_ball_measure as chaplygin_ball_measure,
+    chaplygin_ball_omega as chaplygin_ball_omega,
+)
 from ._rattleback import Rattleback as Rattleback
-from ._rolling import FlatBaseOnSphere as FlatBaseOnSphere
-from ._rolling import RollingBody as RollingBody
+from ._rolling import FlatBaseOnSphere as FlatBaseOnSphere, RollingBody as RollingBody
 
 SCENES["body-on-vibrating-plane"] = BodyOnVibratingPlane
 SCENES["chaplygin-ball"] = ChaplyginBall

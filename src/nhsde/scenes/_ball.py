@@ -31,9 +31,7 @@ class BallParameters(AbstractParameters):
     eps: jnp.ndarray = parameter(default=1.0, lower=0.0, doc="friction ε of (3.1), 1/s")
     nu: jnp.ndarray = parameter(default=1.0, lower=0.0, doc="intensity ν of the vibration acceleration, per axis")
     radius: jnp.ndarray = parameter(default=1.0, lower=0.0, strict=True, doc="ball radius r")
-    inertia_ratio: jnp.ndarray = parameter(
-        default=0.4, lower=0.0, doc="κ = J/(m r²); 2/5 for a homogeneous ball"
-    )
+    inertia_ratio: jnp.ndarray = parameter(default=0.4, lower=0.0, doc="κ = J/(m r²); 2/5 for a homogeneous ball")
 
     @property
     def delta(self):

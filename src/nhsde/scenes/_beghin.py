@@ -42,7 +42,9 @@ class BeghinParameters(AbstractParameters):
     nu: jnp.ndarray = parameter(default=0.01, lower=0.0, doc="intensity ν of the random torque on the plate")
     plate_mass: jnp.ndarray = parameter(default=1.0, lower=0.0, strict=True, doc="plate mass M")
     gyration: jnp.ndarray = parameter(default=0.3, lower=0.0, doc="central radius of gyration k of the plate")
-    hinge_offset: jnp.ndarray = parameter(default=0.5, lower=0.0, doc="distance b from the hinge to the plate's centre of mass")
+    hinge_offset: jnp.ndarray = parameter(
+        default=0.5, lower=0.0, doc="distance b from the hinge to the plate's centre of mass"
+    )
     disk_radius: jnp.ndarray = parameter(default=1.0, lower=0.0, strict=True, doc="disk radius R")
     disk_inertia: jnp.ndarray = parameter(default=2.0, lower=0.0, strict=True, doc="disk moment of inertia I₁")
     force: jnp.ndarray = parameter(default=1.0, doc="force F along x")
@@ -52,7 +54,9 @@ class BeghinParameters(AbstractParameters):
 def _kinetic(q, v, pi, t, p):
     m, r, b, k = p.plate_mass, p.disk_radius, p.hinge_offset, p.gyration
     coupling = 2 * r * b * v[0] * v[1] * jnp.cos(q[0] - q[1])
-    return 0.5 * p.disk_inertia * v[0] ** 2 + 0.5 * m * (r**2 * v[0] ** 2 + b**2 * v[1] ** 2 + coupling + k**2 * v[1] ** 2)
+    return 0.5 * p.disk_inertia * v[0] ** 2 + 0.5 * m * (
+        r**2 * v[0] ** 2 + b**2 * v[1] ** 2 + coupling + k**2 * v[1] ** 2
+    )
 
 
 def _potential(q, pi, t, p):
@@ -100,8 +104,12 @@ class BeghinPlate(AbstractSpecScene):
 
     def spec(self) -> MechanicalSpec:
         kw = {
-            "coordinates": ("alpha", "beta"), "params": self.params, "kinetic_energy": _kinetic,
-            "potential": _potential, "dissipation": _dissipation, "noise_force": _torque,
+            "coordinates": ("alpha", "beta"),
+            "params": self.params,
+            "kinetic_energy": _kinetic,
+            "potential": _potential,
+            "dissipation": _dissipation,
+            "noise_force": _torque,
         }
         if self.realisation == "contact":
             return MechanicalSpec(holonomic=_right_angle, **kw)

@@ -181,11 +181,17 @@ class BodyOnVibratingPlane(eqx.Module):
     Parameters: ClassVar[type[VibratingPlaneParameters]] = VibratingPlaneParameters
 
     def __init__(
-        self, *, body: RigidBody | None = None, friction: Literal["phi1", "phi2"] = "phi1", drift: bool = False,
+        self,
+        *,
+        body: RigidBody | None = None,
+        friction: Literal["phi1", "phi2"] = "phi1",
+        drift: bool = False,
         **params,
     ):
         if friction not in ("phi1", "phi2"):
-            raise ValueError(f"friction={friction!r}; allowed: 'phi1' (relative velocity) or 'phi2' (absolute velocity).")
+            raise ValueError(
+                f"friction={friction!r}; allowed: 'phi1' (relative velocity) or 'phi2' (absolute velocity)."
+            )
         self.params = VibratingPlaneParameters(body=_default_body() if body is None else body, **params)
         self.friction = friction
         self.drift = bool(drift)
@@ -203,8 +209,12 @@ class BodyOnVibratingPlane(eqx.Module):
         # b depends on γ only and γ carries no noise, so Σⱼ(∂bⱼ/∂Z)bⱼ = 0 and the Itô and Stratonovich
         # forms coincide; tagged Stratonovich so that Euler–Heun (first order in the drift) needs no conversion.
         return StochasticSystem(
-            drift_fn=_Drift(layout), diffusion_fn=_Diffusion(layout), params=self.params,
-            layout=StateLayout(names, roles), noise_dim=3, interpretation="stratonovich",
+            drift_fn=_Drift(layout),
+            diffusion_fn=_Diffusion(layout),
+            params=self.params,
+            layout=StateLayout(names, roles),
+            noise_dim=3,
+            interpretation="stratonovich",
             observables=(("theta", _theta), ("energy", _energy)),
         )
 

@@ -109,8 +109,13 @@ class ChaplyginBall(eqx.Module):
             names += ("alpha_1", "alpha_2", "alpha_3", "x", "y")
             roles += ("independent_coordinate",) * 3 + ("dependent_coordinate",) * 2
         return StochasticSystem(
-            drift_fn=_drift, diffusion_fn=_diffusion, params=self.params, layout=StateLayout(names, roles),
-            noise_dim=3, additive_noise=True, observables=(("energy", _energy),),
+            drift_fn=_drift,
+            diffusion_fn=_diffusion,
+            params=self.params,
+            layout=StateLayout(names, roles),
+            noise_dim=3,
+            additive_noise=True,
+            observables=(("energy", _energy),),
         )
 
     def initial_state(self):

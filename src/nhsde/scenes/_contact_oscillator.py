@@ -66,8 +66,13 @@ class ContactOscillator(AbstractSpecScene):
 
     def spec(self) -> MechanicalSpec:
         return MechanicalSpec(
-            coordinates=("x", "y", "z"), params=self.params, kinetic_energy=_kinetic, potential=_potential,
-            constraints=_contact, dissipation=_dissipation, noise_force=_forces,
+            coordinates=("x", "y", "z"),
+            params=self.params,
+            kinetic_energy=_kinetic,
+            potential=_potential,
+            constraints=_contact,
+            dissipation=_dissipation,
+            noise_force=_forces,
         )
 
     def configuration(self):

@@ -29,7 +29,9 @@ class DiskParameters(AbstractParameters):
     mass: jnp.ndarray = parameter(default=1.0, lower=0.0, strict=True, doc="mass m")
     radius: jnp.ndarray = parameter(default=1.0, lower=0.0, strict=True, doc="radius R")
     roll_inertia: jnp.ndarray = parameter(default=0.5, lower=0.0, strict=True, doc="moment of inertia I about the axle")
-    turn_inertia: jnp.ndarray = parameter(default=0.25, lower=0.0, strict=True, doc="moment of inertia J about the vertical")
+    turn_inertia: jnp.ndarray = parameter(
+        default=0.25, lower=0.0, strict=True, doc="moment of inertia J about the vertical"
+    )
 
 
 def _kinetic(q, v, pi, t, p):
@@ -50,7 +52,12 @@ def _torques(q, v, pi, t, p):
     zero = jnp.zeros((), q.dtype)
     roll = jnp.sqrt(p.roll_inertia + p.mass * p.radius**2)
     return sqrt_intensity(p.nu) * jnp.stack(
-        [jnp.stack([zero, zero]), jnp.stack([zero, zero]), jnp.stack([roll, zero]), jnp.stack([zero, jnp.sqrt(p.turn_inertia)])]
+        [
+            jnp.stack([zero, zero]),
+            jnp.stack([zero, zero]),
+            jnp.stack([roll, zero]),
+            jnp.stack([zero, jnp.sqrt(p.turn_inertia)]),
+        ]
     )
 
 
@@ -70,8 +77,12 @@ class VerticalRollingDisk(AbstractSpecScene):
 
     def spec(self) -> MechanicalSpec:
         return MechanicalSpec(
-            coordinates=("x", "y", "theta", "phi"), params=self.params, kinetic_energy=_kinetic,
-            constraints=_rolling, dissipation=_dissipation, noise_force=_torques,
+            coordinates=("x", "y", "theta", "phi"),
+            params=self.params,
+            kinetic_energy=_kinetic,
+            constraints=_rolling,
+            dissipation=_dissipation,
+            noise_force=_torques,
         )
 
     def configuration(self):

@@ -55,7 +55,13 @@ class Rattleback(RollingBody):
     """
 
     def __init__(
-        self, *, semi_axes=(0.2, 0.03, 0.02), height=0.01, mass=1.0, inertia=(2e-4, 1.6e-3, 1.7e-3), product=-2e-5,
+        self,
+        *,
+        semi_axes=(0.2, 0.03, 0.02),
+        height=0.01,
+        mass=1.0,
+        inertia=(2e-4, 1.6e-3, 1.7e-3),
+        product=-2e-5,
         gravity=9.81,
     ):
         semi_axes, height, product = jnp.asarray(semi_axes), jnp.asarray(height), jnp.asarray(product)
@@ -68,11 +74,13 @@ class Rattleback(RollingBody):
                 f"|height| < c = {float(semi_axes[2]):g}."
             )
         zero = jnp.zeros_like(product)
-        matrix = jnp.stack([
-            jnp.stack([inertia[0], -product, zero]),
-            jnp.stack([-product, inertia[1], zero]),
-            jnp.stack([zero, zero, inertia[2]]),
-        ])
+        matrix = jnp.stack(
+            [
+                jnp.stack([inertia[0], -product, zero]),
+                jnp.stack([-product, inertia[1], zero]),
+                jnp.stack([zero, zero, inertia[2]]),
+            ]
+        )
         offset = jnp.stack([jnp.zeros_like(height), jnp.zeros_like(height), -height])
         body = RigidBody(mass=mass, inertia=matrix, surface=Ellipsoid(semi_axes=semi_axes, offset=offset))
         super().__init__(body=body, contact="classic", gravity=gravity)

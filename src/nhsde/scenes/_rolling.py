@@ -60,14 +60,21 @@ class RollingBody(eqx.Module):
     Parameters: ClassVar[type[RollingParameters]] = RollingParameters
 
     def __init__(
-        self, *, body: RigidBody, contact: Literal["classic", "rubber"] = "rubber", curvature=None, gravity=0.0,
+        self,
+        *,
+        body: RigidBody,
+        contact: Literal["classic", "rubber"] = "rubber",
+        curvature=None,
+        gravity=0.0,
         drift: bool = False,
     ):
         if contact not in ("classic", "rubber"):
             raise ValueError(f"contact={contact!r}; allowed: 'classic' (no slip) or 'rubber' (no slip, no spin).")
         sphere = curvature is not None
         if sphere and drift:
-            raise ValueError("drift=True keeps the contact point on a plane; on a sphere (curvature given) use drift=False.")
+            raise ValueError(
+                "drift=True keeps the contact point on a plane; on a sphere (curvature given) use drift=False."
+            )
         self.params = RollingParameters(body=body, curvature=curvature if sphere else 0.0, gravity=gravity)
         check_rolling_configuration(self.params, sphere)
         self.vector_field = RollingField(rubber=contact == "rubber", sphere=sphere, position=bool(drift))

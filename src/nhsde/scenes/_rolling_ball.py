@@ -65,8 +65,12 @@ class BallFromLagrangian(AbstractSpecScene):
 
     def spec(self) -> MechanicalSpec:
         return MechanicalSpec(
-            coordinates=("x", "y", "phi_x", "phi_y", "phi_z"), params=self.params, kinetic_energy=_kinetic,
-            constraints=_rolling, dissipation=_dissipation, noise_force=_vibration,
+            coordinates=("x", "y", "phi_x", "phi_y", "phi_z"),
+            params=self.params,
+            kinetic_energy=_kinetic,
+            constraints=_rolling,
+            dissipation=_dissipation,
+            noise_force=_vibration,
         )
 
     def configuration(self):

@@ -39,8 +39,12 @@ class RollingDiskParameters(AbstractParameters):
     nu: jnp.ndarray = parameter(default=0.0, lower=0.0, doc="intensity ν of the random torques")
     mass: jnp.ndarray = parameter(default=1.0, lower=0.0, strict=True, doc="mass m")
     radius: jnp.ndarray = parameter(default=1.0, lower=0.0, strict=True, doc="radius R")
-    axial_inertia: jnp.ndarray = parameter(default=0.5, lower=0.0, strict=True, doc="central moment of inertia C about the axis")
-    diametral_inertia: jnp.ndarray = parameter(default=0.25, lower=0.0, strict=True, doc="central moment of inertia A about a diameter")
+    axial_inertia: jnp.ndarray = parameter(
+        default=0.5, lower=0.0, strict=True, doc="central moment of inertia C about the axis"
+    )
+    diametral_inertia: jnp.ndarray = parameter(
+        default=0.25, lower=0.0, strict=True, doc="central moment of inertia A about a diameter"
+    )
     gravity: jnp.ndarray = parameter(default=9.81, lower=0.0, doc="gravitational acceleration g")
 
 
@@ -124,8 +128,13 @@ class RollingDisk(AbstractSpecScene):
 
     def spec(self) -> MechanicalSpec:
         return MechanicalSpec(
-            coordinates=("x", "y", "psi", "theta", "phi"), params=self.params, mass_matrix=_mass_matrix, potential=_potential,
-            constraints=_rolling, dissipation=_dissipation, noise_force=_torques,
+            coordinates=("x", "y", "psi", "theta", "phi"),
+            params=self.params,
+            mass_matrix=_mass_matrix,
+            potential=_potential,
+            constraints=_rolling,
+            dissipation=_dissipation,
+            noise_force=_torques,
         )
 
     def configuration(self):

@@ -75,8 +75,12 @@ class BeadOnRotatingRod(AbstractSpecScene):
 
     def spec(self) -> MechanicalSpec:
         return MechanicalSpec(
-            coordinates=("x", "y"), params=self.params, kinetic_energy=_kinetic, holonomic=_on_rod,
-            dissipation=_dissipation, noise_force=_random_force,
+            coordinates=("x", "y"),
+            params=self.params,
+            kinetic_energy=_kinetic,
+            holonomic=_on_rod,
+            dissipation=_dissipation,
+            noise_force=_random_force,
         )
 
     def configuration(self):

@@ -113,8 +113,14 @@ class ChaplyginSleigh(eqx.Module):
             layout = StateLayout(("v", "omega"), ("velocity", "velocity"))
             drift, diffusion, linear, energy = _drift_reduced, _diffusion_reduced, _linear_reduced, _ENERGY_REDUCED
         return StochasticSystem(
-            drift_fn=drift, diffusion_fn=diffusion, params=self.params, layout=layout, noise_dim=2,
-            additive_noise=True, linear_drift=linear, observables=(("energy", energy),),
+            drift_fn=drift,
+            diffusion_fn=diffusion,
+            params=self.params,
+            layout=layout,
+            noise_dim=2,
+            additive_noise=True,
+            linear_drift=linear,
+            observables=(("energy", energy),),
         )
 
     def initial_state(self):

@@ -21,7 +21,8 @@ def checked_route(route: str) -> str:
 
 
 class AbstractSpecScene(eqx.Module):
-    """A scene given by its energies and constraints; ``route`` picks the equations (see :data:`~nhsde.mechanics.ROUTES`).
+    """A scene given by its energies and constraints; ``route`` picks the equations (see
+    :data:`~nhsde.mechanics.ROUTES`).
 
     ``dependent`` is the Voronets choice of dependent velocities and
     ``stabilization`` the Baumgarte rate used by the routes with all velocities.

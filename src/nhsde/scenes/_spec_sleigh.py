@@ -63,8 +63,12 @@ class ChaplyginSleighFromSpec(AbstractSpecScene):
 
     def spec(self) -> MechanicalSpec:
         return MechanicalSpec(
-            coordinates=("x", "y", "theta"), params=self.params, kinetic_energy=_kinetic, constraints=_knife,
-            dissipation=_dissipation, noise_force=_force_and_torque,
+            coordinates=("x", "y", "theta"),
+            params=self.params,
+            kinetic_energy=_kinetic,
+            constraints=_knife,
+            dissipation=_dissipation,
+            noise_force=_force_and_torque,
         )
 
     def configuration(self):

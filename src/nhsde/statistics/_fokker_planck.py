@@ -83,7 +83,9 @@ class GridDensity(eqx.Module):
         idx = np.searchsorted(faces, np.asarray(edges) - 1e-9 * h)
         if not np.allclose(faces[np.clip(idx, 0, len(faces) - 1)], edges, atol=1e-9 * h):
             raise ValueError("edges must lie on cell faces of the grid.")
-        cum = jnp.concatenate([jnp.zeros(self.values.shape[:-1] + (1,), self.values.dtype), jnp.cumsum(self.values, -1) * h], -1)
+        cum = jnp.concatenate(
+            [jnp.zeros(self.values.shape[:-1] + (1,), self.values.dtype), jnp.cumsum(self.values, -1) * h], -1
+        )
         return cum[..., idx[1:]] - cum[..., idx[:-1]]
 
 
@@ -191,14 +193,14 @@ def _operator(system: StochasticSystem, axes, t: float):
                 add(right, up_c, coef / h)
                 add(right, down_c, -coef / h)
     size = index.size
-    return sp.csc_matrix(
-        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size)
-    )
+    return sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size))
 
 
 def _check_autonomous(system, axes, t0):
     pts = jnp.asarray(np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(axes)))
-    f = jax.jit(jax.vmap(lambda t, x: (system.drift(t, x, system.params), system.diffusion(t, x, system.params)), (None, 0)))
+    f = jax.jit(
+        jax.vmap(lambda t, x: (system.drift(t, x, system.params), system.diffusion(t, x, system.params)), (None, 0))
+    )
     a0, b0 = f(t0, pts)
     a1, b1 = f(t0 + 1.0, pts)
     if not (np.allclose(a0, a1, rtol=1e-12, atol=0) and np.allclose(b0, b1, rtol=1e-12, atol=0)):
@@ -223,9 +225,11 @@ def stationary_fokker_planck(system: StochasticSystem, bounds, n) -> GridDensity
     return GridDensity(tuple(jnp.asarray(a) for a in axes), jnp.asarray(f.reshape(shape)), None, system.layout.names)
 
 
-def fokker_planck(system: StochasticSystem, initial: Callable, bounds, n, *, t1: float, dt: float, save_n: int = 2,
-                  t0: float = 0.0) -> GridDensity:
-    """Transient density from ``initial`` (a function of points ``(..., k)`` → density) at ``save_n`` times in ``[t0, t1]``.
+def fokker_planck(
+    system: StochasticSystem, initial: Callable, bounds, n, *, t1: float, dt: float, save_n: int = 2, t0: float = 0.0
+) -> GridDensity:
+    """Transient density from ``initial`` (a function of points ``(..., k)`` → density) at ``save_n`` times in
+    ``[t0, t1]``.
 
     Crank–Nicolson with step ``dt`` (the first step as two backward-Euler half steps).
     """

@@ -79,8 +79,11 @@ def _nonlinear_components(system: StochasticSystem, dtype) -> tuple[int, ...]:
     d = system.state_dim
     with jax.ensure_compile_time_eval():  # concrete even inside an outer jit
         params = jax.tree_util.tree_map(
-            lambda p: jnp.asarray(rng.uniform(0.5, 1.5, np.shape(p)), dtype)
-            if jnp.issubdtype(jnp.result_type(p), jnp.floating) else p,
+            lambda p: (
+                jnp.asarray(rng.uniform(0.5, 1.5, np.shape(p)), dtype)
+                if jnp.issubdtype(jnp.result_type(p), jnp.floating)
+                else p
+            ),
             system.params,
         )
 
@@ -136,6 +139,7 @@ class _Closure(eqx.Module):
             chol = _cholesky(0.5 * (k_a + k_a.T), tiny * jnp.max(jnp.abs(jnp.diagonal(k_a))) + tiny**2)
             z = z.at[:, idx].add(self.nodes @ chol.T)
         params = self.system.params
+
         def drift_twice(y):
             a = self.system.drift(t, y, params)
             return a, a
@@ -181,8 +185,10 @@ def _initial(system, y0, cov0):
         raise ValueError(f"cov0 has shape {cov0.shape}; expected ({d}, {d}).")
     if not isinstance(cov0, jax.core.Tracer):
         c = np.asarray(cov0, np.float64)
-        if not np.all(np.isfinite(c)) or not np.allclose(c, c.T) or np.min(np.linalg.eigvalsh(c)) < -1e-12 * max(
-            1.0, np.abs(c).max()
+        if (
+            not np.all(np.isfinite(c))
+            or not np.allclose(c, c.T)
+            or np.min(np.linalg.eigvalsh(c)) < -1e-12 * max(1.0, np.abs(c).max())
         ):
             raise ValueError("cov0 must be a finite, symmetric, positive semi-definite matrix.")
     return y0, cov0
@@ -258,9 +264,18 @@ def normal_approximation(
     idx = np.asarray([system.layout.index(n) for n in names])
     mean, cov = ms[:, idx], ks[:, idx[:, None], idx[None, :]]
     return Ensemble(
-        ts=ts, mean=mean, cov=cov, mean_se=jnp.zeros_like(mean), cov_se=jnp.zeros_like(cov),
-        n_used=jnp.zeros((), jnp.int32), failed=jnp.zeros((0,), bool), paths=None, names=names,
-        roles=tuple(system.layout.roles[i] for i in idx), solver=SOLVER_NAME, dt=(t1 - t0) / n_steps,
+        ts=ts,
+        mean=mean,
+        cov=cov,
+        mean_se=jnp.zeros_like(mean),
+        cov_se=jnp.zeros_like(cov),
+        n_used=jnp.zeros((), jnp.int32),
+        failed=jnp.zeros((0,), bool),
+        paths=None,
+        names=names,
+        roles=tuple(system.layout.roles[i] for i in idx),
+        solver=SOLVER_NAME,
+        dt=(t1 - t0) / n_steps,
     )
 
 
@@ -378,7 +393,8 @@ def stationary_drift(
         if not res <= rtol * scale:
             raise ValueError(
                 f"no stationary regime found: moment-equation residual {res:.3g} after {newton_steps} Newton steps "
-                f"(scale {scale:.3g}); increase t_relax or check that x = {tuple(layout.names[i] for i in x)} is stationary."
+                f"(scale {scale:.3g}); increase t_relax or check that "
+                f"x = {tuple(layout.names[i] for i in x)} is stationary."
             )
         growth = float(jnp.max(jnp.real(jnp.linalg.eigvals(ja))))
         if not growth < 0:
@@ -387,7 +403,9 @@ def stationary_drift(
                 f"with real part {growth:.3g} ≥ 0."
             )
     return StationaryDrift(
-        rate=mean_a[dep], gain=jac[np.ix_(dep, x)], jacobian=ja,
+        rate=mean_a[dep],
+        gain=jac[np.ix_(dep, x)],
+        jacobian=ja,
         moments=StationaryMoments(mx, kx, tuple(layout.names[i] for i in x)),
         names=tuple(layout.names[i] for i in dep),
     )
@@ -443,9 +461,12 @@ def green_kubo(system: StochasticSystem, ens: Ensemble, *, t_from: float, max_la
     n_origin = len(window) - n_lag
 
     def per_path(v):  # (lags, k, k): C_p(τ_j) averaged over time origins
-        return jax.vmap(lambda j: jnp.einsum("nk,nl->kl", jax.lax.dynamic_slice_in_dim(v, j, n_origin), v[:n_origin]))(
-            jnp.arange(n_lag + 1)
-        ) / n_origin
+        return (
+            jax.vmap(lambda j: jnp.einsum("nk,nl->kl", jax.lax.dynamic_slice_in_dim(v, j, n_origin), v[:n_origin]))(
+                jnp.arange(n_lag + 1)
+            )
+            / n_origin
+        )
 
     per_path = jax.jit(jax.vmap(per_path))(vel)  # (p, lags, k, k)
     w = np.full(n_lag + 1, spacing)

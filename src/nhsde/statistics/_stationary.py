@@ -65,7 +65,9 @@ class StationaryDensity(eqx.Module):
         """``log N(x) − α H(x)`` for ``x`` of shape ``(..., k)``."""
         x = jnp.asarray(x)
         flat = x.reshape(-1, x.shape[-1])
-        values = jax.vmap(lambda z: _log_weight(self.hamiltonian, self.invariant_density, self.params, self.alpha, z))(flat)
+        values = jax.vmap(lambda z: _log_weight(self.hamiltonian, self.invariant_density, self.params, self.alpha, z))(
+            flat
+        )
         return values.reshape(x.shape[:-1])
 
     def log_pdf(self, x) -> Array:
@@ -106,7 +108,8 @@ def stationary_density(
     rtol: float = 1e-7,
     quadrature_nodes: int = 96,
 ) -> StationaryDensity:
-    """The exact stationary density ``c N exp(−αH)`` of S0 Statements 1–2, or a ``ValueError`` naming the failing condition.
+    """The exact stationary density ``c N exp(−αH)`` of S0 Statements 1–2, or a ``ValueError`` naming the failing
+    condition.
 
     - ``hamiltonian(x, params)``: the first integral ``H`` of the frictionless,
       noiseless flow, ``x`` the state without the dependent coordinates.
@@ -134,12 +137,11 @@ def stationary_density(
         params0 = params.replace(**{friction: 0.0, noise: 0.0})
     except (AttributeError, TypeError) as err:
         raise ValueError(
-            f"friction={friction!r}, noise={noise!r}: the system's parameters must have both, to switch them off ({err})."
+            f"friction={friction!r}, noise={noise!r}: the system's parameters must have both, to "
+            f"switch them off ({err})."
         ) from None
     dtype = jnp.result_type(float)
-    pts = (
-        jax.random.normal(jax.random.key(0), (64, k), dtype) if points is None else jnp.asarray(points, dtype)
-    )
+    pts = jax.random.normal(jax.random.key(0), (64, k), dtype) if points is None else jnp.asarray(points, dtype)
     if pts.ndim != 2 or pts.shape[1] != k:
         raise ValueError(f"points has shape {pts.shape}; expected (n, {k}) over {names}.")
 
@@ -164,6 +166,7 @@ def stationary_density(
 
     # 1. Chaplygin decoupling: x does not feel q''.
     if dep.size:
+
         def x_part(z):
             return system.drift(0.0, z, params)[x_idx], system.diffusion(0.0, z, params)[x_idx]
 
@@ -171,7 +174,10 @@ def stationary_density(
         coupling = max(float(jnp.max(jnp.abs(j[..., dep]))) for j in jac)
         scale = max(float(jnp.max(jnp.abs(j))) for j in jac)
         if coupling > rtol * scale:
-            _refuse("Chaplygin decoupling", f"the drift or noise of {names} depends on {tuple(layout.names[i] for i in dep)}")
+            _refuse(
+                "Chaplygin decoupling",
+                f"the drift or noise of {names} depends on {tuple(layout.names[i] for i in dep)}",
+            )
 
     def n_f0(x):
         return jnp.exp(log_n(x)) * f0(x)
@@ -193,7 +199,10 @@ def stationary_density(
     ref = jnp.linalg.norm(f0_pts, axis=1) * jnp.linalg.norm(grad_h, axis=1)
     if not bool(jnp.all(jnp.abs(power) <= rtol * ref)):
         worst = int(jnp.argmax(jnp.abs(power) - rtol * ref))
-        _refuse("H is a first integral of the frictionless, noiseless flow", f"f₀·∇H = {float(power[worst]):.3g} at x = {pts[worst]}")
+        _refuse(
+            "H is a first integral of the frictionless, noiseless flow",
+            f"f₀·∇H = {float(power[worst]):.3g} at x = {pts[worst]}",
+        )
 
     # 3. N is invariant for the frictionless, noiseless flow.
     div = jnp.trace(jac_nf0, axis1=1, axis2=2)
@@ -209,14 +218,18 @@ def stationary_density(
     # 4. Friction proportional to bbᵀ: α from the flux balance, constant and positive.
     alphas = alphas[jnp.isfinite(alphas)]
     if alphas.size == 0:
-        _refuse("friction proportional to bbᵀ (S0 condition 1)", "∇Hᵀ bbᵀ ∇H = 0 at every test point: the noise does not reach H")
+        _refuse(
+            "friction proportional to bbᵀ (S0 condition 1)",
+            "∇Hᵀ bbᵀ ∇H = 0 at every test point: the noise does not reach H",
+        )
     alpha = jnp.median(alphas)
     spread = float(jnp.max(jnp.abs(alphas - alpha)))
     if not (float(alpha) > 0 and spread <= rtol * abs(float(alpha))):
         _refuse(
             "friction proportional to bbᵀ (S0 condition 1, a + aᵀ = 2bbᵀ)",
             f"the flux-balance α = −2(F − ½∇·D − ½D∇log N)·∇H/(∇Hᵀ D ∇H) ranges over "
-            f"[{float(jnp.min(alphas)):.6g}, {float(jnp.max(alphas)):.6g}] at the test points; it must be one positive constant",
+            f"[{float(jnp.min(alphas)):.6g}, {float(jnp.max(alphas)):.6g}] at the test points; it "
+            "must be one positive constant",
         )
 
     def log_rho(x):
@@ -227,14 +240,16 @@ def stationary_density(
         fx, jf = f(x), jax.jacfwd(f)(x)
         d, dd = diff(x), jax.jacfwd(diff)(x)  # dd[i, j, l] = ∂_l D_ij
         ddd = jax.jacfwd(jax.jacfwd(diff))(x)
-        return jnp.stack([
-            -jnp.trace(jf),
-            -fx @ g,
-            0.5 * jnp.einsum("ijij->", ddd),
-            jnp.einsum("iji,j->", dd, g),
-            0.5 * g @ d @ g,
-            0.5 * jnp.sum(d * hess),
-        ])
+        return jnp.stack(
+            [
+                -jnp.trace(jf),
+                -fx @ g,
+                0.5 * jnp.einsum("ijij->", ddd),
+                jnp.einsum("iji,j->", dd, g),
+                0.5 * g @ d @ g,
+                0.5 * jnp.sum(d * hess),
+            ]
+        )
 
     terms = jax.jit(jax.vmap(fpk_terms))(pts)
     residual = jnp.sum(terms, axis=1)
@@ -282,7 +297,9 @@ def _quadrature(log_rho, k, dtype, n):
         grids = np.meshgrid(*([theta * np.pi / 2] * k), indexing="ij")
         wgrid = np.meshgrid(*([w * np.pi / 2] * k), indexing="ij")
         t = np.stack([g.reshape(-1) for g in grids], -1)
-        return jnp.asarray(t, dtype), jnp.asarray(np.log(np.prod(np.stack([g.reshape(-1) for g in wgrid], -1), -1)), dtype)
+        return jnp.asarray(t, dtype), jnp.asarray(
+            np.log(np.prod(np.stack([g.reshape(-1) for g in wgrid], -1), -1)), dtype
+        )
 
     @jax.jit
     def integrate(centre, scale, t, log_w):
