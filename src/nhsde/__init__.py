@@ -29,4 +29,6 @@ from ._work_precision import (
     work_precision as work_precision,
 )
 
-__version__ = "0.1.0"
+import importlib.metadata
+
+__version__ = importlib.metadata.version("nhsde")

@@ -6,7 +6,9 @@ static field and never closed over, so ``jax.grad``/``jax.jacfwd`` reach it.
 Each leaf declares its range with :func:`parameter`; concrete values are checked
 when the module is built (``ValueError`` naming the argument, the value and the
 range), traced values are checked at run time with ``eqx.error_if`` by
-:meth:`AbstractParameters.validated`.
+:func:`validated`, which walks any pytree of parameters (the one parameters
+interface: a system's ``params`` is any pytree, and its
+:class:`AbstractParameters` nodes carry the ranges).
 """
 
 from __future__ import annotations
@@ -18,7 +20,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["AbstractParameters", "parameter", "sqrt_intensity"]
+from ._misc import is_concrete
+
+__all__ = ["AbstractParameters", "parameter", "sqrt_intensity", "validated"]
 
 
 def parameter(*, default, lower: float | None = None, strict: bool = False, doc: str = ""):
@@ -36,11 +40,8 @@ def _range_text(lower, strict) -> str:
     return f"finite and {'>' if strict else '≥'} {lower:g}"
 
 
-def _concrete(value) -> np.ndarray | None:
-    try:
-        return np.asarray(value)
-    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
-        return None
+def _declared(cls) -> list[dataclasses.Field]:
+    return [f for f in dataclasses.fields(cls) if "lower" in f.metadata]
 
 
 class AbstractParameters(eqx.Module):
@@ -49,21 +50,16 @@ class AbstractParameters(eqx.Module):
     @classmethod
     def describe(cls) -> list[tuple[str, object, str, str]]:
         """``(name, default, allowed range, doc)`` for each declared parameter."""
-        rows = []
-        for f in dataclasses.fields(cls):
-            if "lower" in f.metadata:
-                rows.append(
-                    (f.name, f.default, _range_text(f.metadata["lower"], f.metadata["strict"]), f.metadata["doc"])
-                )
-        return rows
+        return [
+            (f.name, f.default, _range_text(f.metadata["lower"], f.metadata["strict"]), f.metadata["doc"])
+            for f in _declared(cls)
+        ]
 
     def __check_init__(self):
-        for f in dataclasses.fields(self):
-            if "lower" not in f.metadata:
-                continue
-            value = _concrete(getattr(self, f.name))
-            if value is None:
+        for f in _declared(self):
+            if not is_concrete(getattr(self, f.name)):
                 continue  # traced: checked by `validated` at run time
+            value = np.asarray(getattr(self, f.name))
             lower, strict = f.metadata["lower"], f.metadata["strict"]
             ok = np.all(np.isfinite(value))
             if ok and lower is not None:
@@ -74,27 +70,6 @@ class AbstractParameters(eqx.Module):
                     f"{f.name} must be {_range_text(lower, strict)}."
                 )
 
-    def validated(self):
-        """The same parameters, with run-time range checks attached to traced leaves."""
-        out = self
-        for f in dataclasses.fields(self):
-            if "lower" not in f.metadata:
-                continue
-            value = getattr(self, f.name)
-            if _concrete(value) is not None:
-                continue
-            lower, strict = f.metadata["lower"], f.metadata["strict"]
-            bad = ~jnp.isfinite(value)
-            if lower is not None:
-                bad = bad | ((value <= lower) if strict else (value < lower))
-            checked = eqx.error_if(
-                value,
-                jnp.any(bad),
-                f"{type(self).__name__}: parameter {f.name} must be {_range_text(lower, strict)}.",
-            )
-            out = eqx.tree_at(lambda p, n=f.name: getattr(p, n), out, checked)
-        return out
-
     def replace(self, **changes):
         """A copy with some parameters changed (and re-checked)."""
         unknown = sorted(set(changes) - {f.name for f in dataclasses.fields(self)})
@@ -102,6 +77,43 @@ class AbstractParameters(eqx.Module):
             allowed = ", ".join(name for name, *_ in self.describe())
             raise TypeError(f"{type(self).__name__} has no parameter {unknown[0]!r}; parameters: {allowed}.")
         return dataclasses.replace(self, **changes)
+
+
+def _with_run_time_checks(node: AbstractParameters) -> AbstractParameters:
+    out = node
+    for f in dataclasses.fields(node):
+        value = getattr(node, f.name)
+        if "lower" not in f.metadata:
+            checked = validated(value)  # nested parameters (a filtered system's, a body's surface)
+        elif is_concrete(value):
+            continue
+        else:
+            lower, strict = f.metadata["lower"], f.metadata["strict"]
+            bad = ~jnp.isfinite(value)
+            if lower is not None:
+                bad = bad | ((value <= lower) if strict else (value < lower))
+            checked = eqx.error_if(
+                value,
+                jnp.any(bad),
+                f"{type(node).__name__}: parameter {f.name} must be {_range_text(lower, strict)}.",
+            )
+        if checked is not value:
+            out = eqx.tree_at(lambda p, n=f.name: getattr(p, n), out, checked, is_leaf=lambda x: x is None)
+    return out
+
+
+def validated(params):
+    """``params`` (any pytree) with run-time range checks attached to the traced leaves of its parameters.
+
+    Concrete values were checked when each :class:`AbstractParameters` was built;
+    traced ones (under ``jit``/``grad``) get an ``eqx.error_if`` naming the
+    parameter and its range.
+    """
+    return jax.tree_util.tree_map(
+        lambda node: _with_run_time_checks(node) if isinstance(node, AbstractParameters) else node,
+        params,
+        is_leaf=lambda node: isinstance(node, AbstractParameters),
+    )
 
 
 @jax.custom_jvp
