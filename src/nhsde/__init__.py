@@ -5,6 +5,8 @@ integrates vmapped ensembles on diffrax; :mod:`nhsde.statistics` turns them into
 drift statistics, differentiable in every physical parameter.
 """
 
+import importlib.metadata
+
 from . import (
     analysis as analysis,
     bodies as bodies,
@@ -28,7 +30,5 @@ from ._work_precision import (
     cheapest_setting as cheapest_setting,
     work_precision as work_precision,
 )
-
-import importlib.metadata
 
 __version__ = importlib.metadata.version("nhsde")

@@ -79,11 +79,21 @@ class AbstractParameters(eqx.Module):
         return dataclasses.replace(self, **changes)
 
 
+def _is_parameters(node) -> bool:
+    return isinstance(node, AbstractParameters)
+
+
+def _holds_parameters(tree) -> bool:
+    return any(_is_parameters(n) for n in jax.tree_util.tree_leaves(tree, is_leaf=_is_parameters))
+
+
 def _with_run_time_checks(node: AbstractParameters) -> AbstractParameters:
     out = node
     for f in dataclasses.fields(node):
         value = getattr(node, f.name)
         if "lower" not in f.metadata:
+            if f.metadata.get("static") or not _holds_parameters(value):
+                continue
             checked = validated(value)  # nested parameters (a filtered system's, a body's surface)
         elif is_concrete(value):
             continue
@@ -97,8 +107,7 @@ def _with_run_time_checks(node: AbstractParameters) -> AbstractParameters:
                 jnp.any(bad),
                 f"{type(node).__name__}: parameter {f.name} must be {_range_text(lower, strict)}.",
             )
-        if checked is not value:
-            out = eqx.tree_at(lambda p, n=f.name: getattr(p, n), out, checked, is_leaf=lambda x: x is None)
+        out = eqx.tree_at(lambda p, n=f.name: getattr(p, n), out, checked, is_leaf=lambda x: x is None)
     return out
 
 
@@ -110,9 +119,7 @@ def validated(params):
     parameter and its range.
     """
     return jax.tree_util.tree_map(
-        lambda node: _with_run_time_checks(node) if isinstance(node, AbstractParameters) else node,
-        params,
-        is_leaf=lambda node: isinstance(node, AbstractParameters),
+        lambda node: _with_run_time_checks(node) if _is_parameters(node) else node, params, is_leaf=_is_parameters
     )
 
 

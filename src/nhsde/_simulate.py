@@ -30,6 +30,7 @@ import jax.random as jr
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from ._params import validated
 from ._solvers import ExponentialEuler
 from ._system import StochasticSystem
 from .noise._brownian import BLOCK, StepIncrement, Wiener, block_keys
@@ -411,7 +412,7 @@ def _safe_sqrt(v):
 
 @eqx.filter_jit
 def _run(system: StochasticSystem, y0, key, cfg: _Config):
-    params = system.params.validated() if hasattr(system.params, "validated") else system.params
+    params = validated(system.params)
     # Compute in the state's precision: float leaves follow y0's dtype.
     params = jax.tree_util.tree_map(
         lambda p: p.astype(y0.dtype) if jnp.issubdtype(jnp.result_type(p), jnp.floating) else p, params

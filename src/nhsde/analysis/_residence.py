@@ -42,6 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from .._params import validated
 from .._simulate import Save, _number, _steps, simulate
 from .._system import StochasticSystem
 from ..noise._brownian import Wiener
@@ -79,7 +80,7 @@ def _concrete(*arrays) -> bool:
 @eqx.filter_jit
 def _coefficients(system, state, t, idx: tuple[int, ...]):
     """Rows ``idx`` of ``∂a/∂Z``, ``a_idx``, ``A = ∂a_idx/∂Z_idx``, ``Q_idx = (b diag(ν) bᵀ)_idx`` at ``state``."""
-    params = system.params.validated() if hasattr(system.params, "validated") else system.params
+    params = validated(system.params)
     b = system.diffusion_fn(t, state, params)
     q = (b * driver_intensity(system.noise, system.noise_dim, b.dtype)) @ b.T
     ix = np.asarray(idx, dtype=int)

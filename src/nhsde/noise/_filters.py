@@ -103,11 +103,6 @@ class ShapingFilter(AbstractShapingFilter):
     def diffusion(self, t, pi):
         return self.diffusion_fn(t, pi, self.params)
 
-    def validated(self):
-        if hasattr(self.params, "validated"):
-            return dataclasses.replace(self, params=self.params.validated())
-        return self
-
     def replace(self, **changes):
         return dataclasses.replace(self, params=self.params.replace(**changes))
 
@@ -117,11 +112,6 @@ class FilteredParameters(eqx.Module):
 
     system: PyTree
     filter: AbstractShapingFilter
-
-    def validated(self):
-        system = self.system.validated() if hasattr(self.system, "validated") else self.system
-        filter_ = self.filter.validated() if hasattr(self.filter, "validated") else self.filter
-        return FilteredParameters(system, filter_)
 
     def replace(self, **changes):
         """Change parameters by name; names of the system's parameters go to the system, the rest to the filter."""

@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import jax.random as jr
 from jaxtyping import Array
 
-from .._params import AbstractParameters, parameter
+from .._params import AbstractParameters, parameter, validated
 from ._brownian import BLOCK, AbstractDriver, Wiener
 
 __all__ = [
@@ -176,8 +176,8 @@ class CompoundPoisson(AbstractDriver, AbstractParameters):
         return _poisson_survival(mu, self.max_jumps)[..., -1]
 
     def block_increment(self, key, k0, dt, shape, substeps, levy_area):
-        driver = self.validated()
-        law = driver.law.validated()
+        driver = validated(self)
+        law = driver.law
         dtype = dt.dtype
         rate = jax.lax.stop_gradient(driver.intensity).astype(_count_dtype())
         mu = jnp.broadcast_to(rate * dt.astype(_count_dtype()), shape)

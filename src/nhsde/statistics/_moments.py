@@ -40,6 +40,7 @@ import numpy as np
 from jax.scipy.linalg import expm
 from jaxtyping import Array, Float
 
+from .._params import validated
 from .._simulate import Ensemble, Save, _number, _steps
 from .._system import StochasticSystem
 from ..noise._levy import driver_intensity
@@ -167,7 +168,7 @@ def _closure(system: StochasticSystem, dtype, order: int) -> _Closure:
         raise ValueError(f"order={order}; must be ≥ 1 (Gauss–Hermite nodes per component).")
     if system.interpretation != "ito":
         system = system.converted("ito")
-    params = system.params.validated() if hasattr(system.params, "validated") else system.params
+    params = validated(system.params)
     params = jax.tree_util.tree_map(
         lambda p: p.astype(dtype) if jnp.issubdtype(jnp.result_type(p), jnp.floating) else p, params
     )
