@@ -58,7 +58,7 @@ def ball():
     report("ball, closed-form covariances:", fit.estimate(start, observed, fit.ClosedForm(closed_form)), (eps, nu))
     # The model simulates with another key, the data's solver and step (SRA1: its weak error at
     # dt = 0.02 is far below the Monte-Carlo error, so the closed form applies to the data too).
-    model = fit.Simulated(jnp.zeros(4), jax.random.key(2), n_paths=4096, dt=0.02, solver="sra1")
+    model = fit.Simulated(jnp.zeros(4), jax.random.key(2), n_paths=4096, steps=0.02, solver="sra1")
     report("ball, through the simulator:", fit.estimate(start, observed, model), (eps, nu))
 
 
@@ -68,7 +68,7 @@ def sleigh():
     data = nhsde.simulate(truth, y0, jax.random.key(3), n_paths=2048, t1=3.0, dt=0.02, save=nhsde.Save(n=7, paths=True))
     observed = fit.Observations.from_paths(data.ts[1:], data.paths[:, 1:], ("v", "omega"))
     start = ChaplyginSleigh(eps=0.2, nu=0.3, drift=False).build()
-    model = fit.Simulated(y0, jax.random.key(4), n_paths=4096, dt=0.02)
+    model = fit.Simulated(y0, jax.random.key(4), n_paths=4096, steps=0.02)
     report("Chaplygin sleigh, through the simulator:", fit.estimate(start, observed, model), (eps, nu))
 
 

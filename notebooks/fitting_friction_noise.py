@@ -1,10 +1,12 @@
 # ---
 # jupyter:
 #   jupytext:
+#     formats: ipynb,py:percent
 #     text_representation:
 #       extension: .py
 #       format_name: percent
 #       format_version: '1.3'
+#       jupytext_version: 1.19.6
 #   kernelspec:
 #     display_name: Python 3
 #     language: python
@@ -135,7 +137,7 @@ start = BallOnVibratingPlane(eps=0.3, nu=0.5).build()
 fits = {}
 for label, model in [
     ("closed form", fit.ClosedForm(ball_closed_form)),
-    ("simulator", fit.Simulated(jnp.zeros(4), jax.random.key(2), n_paths=4096, dt=0.02, solver="sra1")),
+    ("simulator", fit.Simulated(jnp.zeros(4), jax.random.key(2), n_paths=4096, steps=0.02, solver="sra1")),
 ]:
     t0 = time.perf_counter()
     fits[label] = fit.estimate(start, observed, model)
@@ -312,7 +314,7 @@ s_obs = fit.Observations.from_paths(s_data.ts[1:], s_data.paths[:, 1:], ("v", "o
 s_start = ChaplyginSleigh(eps=0.2, nu=0.3, drift=False).build()
 s_fits = {}
 for label, model in [
-    ("simulator", fit.Simulated(Y0, jax.random.key(5), n_paths=4096, dt=0.02)),
+    ("simulator", fit.Simulated(Y0, jax.random.key(5), n_paths=4096, steps=0.02)),
     ("moment equations", fit.MomentEquations(Y0, dt=0.05)),
 ]:
     t0 = time.perf_counter()

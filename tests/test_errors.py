@@ -2,6 +2,7 @@
 
 import math
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -69,17 +70,47 @@ def test_unknown_parameter_is_refused():
         (dict(y0=jnp.zeros(3)), ValueError, r"y0 has shape \(3,\); expected \(4,\) or \(64, 4\)"),
         (dict(y0=jnp.array([0.0, jnp.nan, 0, 0])), ValueError, r"y0 contains non-finite"),
         (dict(solver="rk4"), ValueError, r"solver='rk4'; allowed: euler, milstein, heun, heun2, sra1, exponential"),
-        (dict(chunk_size=100), ValueError, r"chunk_size=100; must be a positive multiple of 64"),
-        (dict(save=nhsde.Save(n=4)), ValueError, r"save.n=4: n − 1 must be ≥ 1 and divide the 10 steps"),
+        (dict(solver=diffrax.Tsit5()), ValueError, r"solver=Tsit5: not an SDE solver"),
+        (dict(solver=diffrax.ShOULD(0.01)), ValueError, r"solver=ShOULD: a Langevin solver"),
+        (dict(solver=3), TypeError, r"solver=3; expected one of"),
+        (dict(batching=nhsde.Batching), TypeError, r"expected nhsde.Batching"),
+        (dict(steps=0.1, dt=None), TypeError, r"expected nhsde.FixedSteps"),
+        (dict(steps=nhsde.FixedSteps(0.1)), TypeError, r"give the step once"),
+        (dict(save=nhsde.Save(n=4)), ValueError, r"save.n=4: n − 1 must divide the 10 steps"),
         (dict(save=nhsde.Save(names=("z",))), ValueError, r"unknown name 'z'"),
         (dict(on_failure="ignore"), ValueError, r"on_failure='ignore'; allowed"),
-        (dict(brownian_dt=0.03), ValueError, r"brownian_dt=0.03 must divide"),
+        (dict(steps=nhsde.FixedSteps(0.1, brownian_dt=0.03), dt=None), ValueError, r"brownian_dt=0.03 must divide"),
+        (dict(steps=nhsde.FixedSteps(0.01, max_steps=50), dt=None), ValueError, r"100 steps .* max_steps=50"),
         (dict(system="ball"), TypeError, r"expected a StochasticSystem"),
     ],
 )
 def test_bad_simulate_arguments_are_refused(kw, exc, match):
     with pytest.raises(exc, match=match):
         sim(**kw)
+
+
+@pytest.mark.parametrize(
+    "make, exc, match",
+    [
+        (lambda: nhsde.Batching(chunk_size=100), ValueError, r"chunk_size=100; must be a positive multiple of 64"),
+        (lambda: nhsde.Batching(devices=jax.devices()[0]), TypeError, r"devices=.*expected a list of JAX devices"),
+        (lambda: nhsde.Batching(devices=jax.devices()[:1] * 2), ValueError, r"lists a device twice"),
+        (lambda: nhsde.Batching(devices=[]), ValueError, r"devices is empty"),
+        (lambda: nhsde.Batching(checkpoint="no"), TypeError, r"checkpoint='no'; expected True, False or None"),
+        (lambda: nhsde.Save(names="xy"), TypeError, r"Save\(names='xy'\); expected a tuple of names"),
+        (lambda: nhsde.Save(names=()), ValueError, r"name at least one quantity"),
+        (lambda: nhsde.Save(n=1), ValueError, r"Save\(n=1\); must be ≥ 2"),
+        (lambda: nhsde.Save(paths="yes"), TypeError, r"Save\(paths='yes'\)"),
+        (lambda: nhsde.FixedSteps(0.0), ValueError, r"dt=0.0; must be > 0"),
+        (lambda: nhsde.FixedSteps(True), TypeError, r"dt=True; expected a number"),
+        (lambda: nhsde.FixedSteps(0.1, brownian_dt=-1.0), ValueError, r"brownian_dt=-1.0; must be > 0"),
+        (lambda: nhsde.FixedSteps(0.1, max_steps=0), ValueError, r"max_steps=0; must be ≥ 1"),
+        (lambda: nhsde.AdaptiveSteps(0.1, rtol=math.nan), ValueError, r"rtol=nan; must be finite"),
+    ],
+)
+def test_bad_options_are_refused_when_built(make, exc, match):
+    with pytest.raises(exc, match=match):
+        make()
 
 
 def test_bad_key_is_refused():

@@ -131,8 +131,6 @@ def test_gradients_at_zero_noise():
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
 def test_long_horizon_bounded_memory(dtype):
     """1e6 steps: finite, stationary k_uu = νδ²/(4ε) within MC error, memory independent of steps."""
-    from nhsde._simulate import _run
-
     scene = BallOnVibratingPlane(eps=1.0, nu=1.0, drift=False)
     system, y0 = scene.build(), scene.initial_state().astype(dtype)
     ens = nhsde.simulate(system, y0, jax.random.key(8), n_paths=64, t1=1e4, dt=0.01, save=nhsde.Save(n=11))
@@ -146,29 +144,19 @@ def test_long_horizon_bounded_memory(dtype):
     assert abs(pooled - exact) <= 4 * se
 
     def temp_bytes(n_steps):
-        cfg = nhsde._simulate._Config(
-            n_paths=64,
-            first_path=0,
-            n_chunks=1,
-            chunk=64,
-            n_steps=n_steps,
-            n_save=11,
-            t0=0.0,
-            t1=n_steps * 0.01,
-            substeps=1,
-            names=system.layout.names,
-            solver="euler",
-            adaptive=False,
-            rtol=1e-3,
-            atol=1e-3,
-            max_steps=1,
-            keep_paths=False,
-            per_path_y0=False,
-            progress=False,
-            devices=tuple(jax.devices()[:1]),
-            checkpoint=True,
-        )
-        compiled = jax.jit(lambda y: _run(system, y, jax.random.key(0), cfg)).lower(y0).compile()
-        return compiled.memory_analysis().temp_size_in_bytes
+        def run(y):
+            ens = nhsde.simulate(
+                system,
+                y,
+                jax.random.key(0),
+                n_paths=64,
+                t1=n_steps * 0.01,
+                dt=0.01,
+                save=nhsde.Save(n=11),
+                batching=nhsde.Batching(devices=jax.devices()[:1], checkpoint=True),
+            )
+            return ens.mean
+
+        return jax.jit(run).lower(y0).compile().memory_analysis().temp_size_in_bytes
 
     assert temp_bytes(1_000_000) == temp_bytes(10_000)

@@ -139,9 +139,8 @@ def norm_drift(sc, y0, key, h, t1, brownian_dt=None):
         jax.random.key(key),
         n_paths=y0.shape[0],
         t1=t1,
-        dt=h,
+        steps=nhsde.FixedSteps(h, brownian_dt=brownian_dt),
         solver="heun",
-        brownian_dt=brownian_dt,
         save=nhsde.Save(n=201, paths=True),
     )
     assert int(ens.n_failed) == 0 and bool(jnp.all(jnp.isfinite(ens.paths)))

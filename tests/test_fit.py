@@ -64,7 +64,7 @@ def test_ball_fit_through_simulation_recovers_eps_and_nu():
     ts, paths = ball_data(jax.random.key(11), 2048, solver="euler")
     observed = fit.Observations.from_paths(ts, paths, NAMES)
     start = BallOnVibratingPlane(eps=0.3, nu=0.5).build()
-    model = fit.Simulated(jnp.zeros(4), jax.random.key(12), n_paths=2048, dt=0.02, solver="euler")
+    model = fit.Simulated(jnp.zeros(4), jax.random.key(12), n_paths=2048, steps=0.02, solver="euler")
     result = fit.estimate(start, observed, model, vary=("eps", "nu"))
     within_two_se(result, (BALL_EPS, BALL_NU))
     # χ² of a model that fits: below its 99.9 % quantile.
@@ -86,7 +86,7 @@ def test_sleigh_fit_through_simulation_recovers_eps_and_nu():
     )
     observed = fit.Observations.from_paths(data.ts[1:], data.paths[:, 1:], ("v", "omega"))
     start = ChaplyginSleigh(eps=0.2, nu=0.3, drift=False).build()
-    model = fit.Simulated(y0, jax.random.key(22), n_paths=4096, dt=0.02)
+    model = fit.Simulated(y0, jax.random.key(22), n_paths=4096, steps=0.02)
     result = fit.estimate(start, observed, model)
     within_two_se(result, (eps, nu))
     assert result.chi2 < stats.chi2.ppf(0.999, result.dof), result
@@ -155,7 +155,7 @@ def test_bad_input_is_named():
         ValueError, match="Simulated: observation times \\[1.0, 2.5\\] are not on an equally spaced grid"
     ):
         bad = fit.Observations.from_paths(np.array([1.0, 2.5]), paths, NAMES)
-        fit.estimate(system, bad, fit.Simulated(jnp.zeros(4), jax.random.key(0), n_paths=64, dt=0.5))
+        fit.estimate(system, bad, fit.Simulated(jnp.zeros(4), jax.random.key(0), n_paths=64, steps=0.5))
     with pytest.raises(ValueError, match="do not determine \\('eps', 'nu'\\) separately"):
         # k_uu at one late time fixes only νδ²/(4ε): a ridge, not a point
         late = fit.Observations.from_statistics([40.0], ("u_x",), [[0.0]], [[[0.5]]], [[0.01]], [[[0.01]]], 1000)
@@ -202,7 +202,7 @@ def test_reported_errors_of_simulated_fits_are_calibrated():
     total = 0.0
     for s in range(n_sets):
         observed = fit.Observations.from_paths(ts, paths[s * n_paths : (s + 1) * n_paths], NAMES)
-        model = fit.Simulated(jnp.zeros(4), jax.random.key(1000 + s), n_paths=n_paths // 2, dt=0.02)
+        model = fit.Simulated(jnp.zeros(4), jax.random.key(1000 + s), n_paths=n_paths // 2, steps=0.02)
         result = fit.estimate(start, observed, model)
         d = result.values - np.array([BALL_EPS, BALL_NU])
         total += d @ np.linalg.solve(result.cov, d)

@@ -14,18 +14,21 @@ SCRIPT = textwrap.dedent(
     assert len(jax.devices()) == 8, jax.devices()
     for scene in (BallOnVibratingPlane(), ChaplyginSleigh()):
         for dtype in (jnp.float32, jnp.float64):
-            kw = dict(n_paths=1000, t1=1.0, dt=0.01, chunk_size=128, save=nhsde.Save(paths=True), solver="euler")
+            kw = dict(n_paths=1000, t1=1.0, dt=0.01, save=nhsde.Save(paths=True), solver="euler")
             y0 = scene.initial_state().astype(dtype)
-            one = nhsde.simulate(scene.build(), y0, jax.random.key(3), devices=jax.devices()[:1], **kw)
+            one = nhsde.simulate(
+                scene.build(), y0, jax.random.key(3), batching=nhsde.Batching(128, jax.devices()[:1]), **kw
+            )
             for n in (2, 8):
-                many = nhsde.simulate(scene.build(), y0, jax.random.key(3), devices=jax.devices()[:n], **kw)
+                batching = nhsde.Batching(128, jax.devices()[:n])
+                many = nhsde.simulate(scene.build(), y0, jax.random.key(3), batching=batching, **kw)
                 for a, b in zip(jax.tree_util.tree_leaves(one), jax.tree_util.tree_leaves(many)):
                     assert np.array_equal(a, b), (type(scene).__name__, dtype, n)
     # gradients through the sharded solve equal the single-device ones
     def k(eps, devices):
         s = BallOnVibratingPlane(eps=eps)
         e = nhsde.simulate(s.build(), s.initial_state(), jax.random.key(0), n_paths=512, t1=1.0, dt=0.01,
-                           chunk_size=64, devices=devices)
+                           batching=nhsde.Batching(64, devices))
         return e.cov[-1, 0, 0]
     g1 = jax.grad(k)(jnp.float32(1.0), jax.devices()[:1])
     g8 = jax.grad(k)(jnp.float32(1.0), jax.devices())

@@ -1,8 +1,10 @@
 """nhsde: stochastic nonholonomic mechanics in JAX.
 
 Scenes build a :class:`StochasticSystem` (the Itô SDE of S0 (1.15)); :func:`simulate`
-integrates vmapped ensembles on diffrax; :mod:`nhsde.statistics` turns them into
-drift statistics, differentiable in every physical parameter.
+integrates vmapped ensembles on diffrax into an :class:`Ensemble`;
+:mod:`nhsde.statistics` and :mod:`nhsde.analysis` turn them into drift statistics,
+differentiable in every physical parameter; :mod:`nhsde.fit` estimates parameters
+and :mod:`nhsde.runs` runs resumable files from the command line.
 """
 
 import importlib.metadata
@@ -16,14 +18,26 @@ from . import (
     scenes as scenes,
     statistics as statistics,
 )
-from ._params import AbstractParameters as AbstractParameters, parameter as parameter, sqrt_intensity as sqrt_intensity
-from ._simulate import (
-    SOLVERS as SOLVERS,
+from ._ensemble import (
+    AbstractMoments as AbstractMoments,
     Ensemble as Ensemble,
+    MomentSums as MomentSums,
     Save as Save,
     SimulationError as SimulationError,
-    simulate as simulate,
 )
+from ._options import (
+    AdaptiveSteps as AdaptiveSteps,
+    Batching as Batching,
+    FixedSteps as FixedSteps,
+)
+from ._params import (
+    AbstractParameters as AbstractParameters,
+    parameter as parameter,
+    sqrt_intensity as sqrt_intensity,
+    validated as validated,
+)
+from ._simulate import simulate as simulate
+from ._solvers import SOLVERS as SOLVERS, ExponentialEuler as ExponentialEuler
 from ._system import StateLayout as StateLayout, StochasticSystem as StochasticSystem
 from ._work_precision import (
     WorkPrecisionRow as WorkPrecisionRow,

@@ -113,6 +113,7 @@ def _cmd_simulate(args):
     for name, default in _LEGACY_DEFAULTS.items():
         if getattr(args, name) is None:
             setattr(args, name, default)
+    import diffrax as dfx
     import jax
     import jax.numpy as jnp
 
@@ -146,7 +147,7 @@ def _cmd_simulate(args):
             dt=args.dt,
             solver=args.solver,
             save=nhsde.Save(n=args.save_points),
-            progress=args.progress,
+            progress_meter=dfx.TqdmProgressMeter() if args.progress else None,
         )
         return (ens.mean, ens.cov), ens
 
@@ -252,8 +253,8 @@ def _config_run(args, kind):
 def _cmd_simulate_config(args):
     from pathlib import Path
 
+    from ._ensemble import SimulationError
     from ._runs import ConfigError, run
-    from ._simulate import SimulationError
 
     given = [f"--{n.replace('_', '-')}" for n in _LEGACY_DEFAULTS if getattr(args, n) is not None]
     given += ["--set"] if args.set else []
@@ -289,8 +290,8 @@ def _cmd_simulate_config(args):
 def _cmd_fit(args):
     from pathlib import Path
 
+    from ._ensemble import SimulationError
     from ._runs import ConfigError, run_fit
-    from ._simulate import SimulationError
 
     config = _config_run(args, "fit")
     out = Path(args.out) if args.out else Path(args.config).with_suffix(".nc")

@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .noise._brownian import BLOCK  # pieces start at multiples of simulate's path block
+from ._brownian import BLOCK  # pieces start at multiples of simulate's path block
 
 __all__ = ["ConfigError", "RunConfig", "load_config", "load_run", "observations_from_run", "run", "run_fit"]
 
@@ -63,7 +63,7 @@ class _Field:
 
 
 def _solver_names():
-    from ._simulate import SOLVERS
+    from ._solvers import SOLVERS
 
     return tuple(SOLVERS)
 
@@ -182,7 +182,7 @@ def _scene_options(scene_cls) -> dict[str, object]:
 
 
 def _check_scene(data: dict):
-    from ._simulate import SOLVERS
+    from ._solvers import solver_needs
     from .scenes import SCENES
 
     if data["scene"] not in SCENES:
@@ -222,8 +222,10 @@ def _check_scene(data: dict):
             if name not in offered:
                 raise ConfigError(f"statistics.save: {name!r} is not offered; this scene offers {', '.join(offered)}.")
     solver = data["solver"]["name"]
-    if SOLVERS[solver].additive_only and not system.additive_noise:
-        raise ConfigError(f"solver.name = {solver!r}: needs additive noise, which {data['scene']} does not have.")
+    try:
+        solver_needs(solver, system)
+    except ValueError as e:
+        raise ConfigError(f"solver.name = {solver!r}: {e}") from None
     if "fit" in data:
         for name in data["fit"]["vary"]:
             if name not in names:
@@ -374,7 +376,7 @@ def _statistics(shift, s1, s2, s3, s4, n):
     """Mean, covariance and their standard errors from moment sums, as ``simulate`` forms them."""
     import jax.numpy as jnp
 
-    from ._simulate import _central_product_moment, _safe_sqrt
+    from ._ensemble import _central_product_moment, _safe_sqrt
 
     nf = float(n)
     mean = shift + s1 / nf
@@ -513,7 +515,10 @@ def run(config: RunConfig, out, *, on_piece: Callable[[int], None] | None = None
     ``on_piece(k)`` is called after piece ``k`` is safely written (progress
     reports; an exception there interrupts the run as a kill would).
     """
-    from ._simulate import Save, simulate
+    import diffrax as dfx
+
+    from ._ensemble import Save
+    from ._simulate import simulate
 
     if config.kind != "simulate":
         raise ValueError(f"run: this is a {config.kind!r} configuration; use run_fit.")
@@ -545,7 +550,7 @@ def run(config: RunConfig, out, *, on_piece: Callable[[int], None] | None = None
             solver=d["solver"]["name"],
             save=Save(names=names, n=d["statistics"]["save_points"], paths=True),
             on_failure="exclude",
-            progress=progress,
+            progress_meter=dfx.TqdmProgressMeter() if progress else None,
         )
         paths, failed = np.asarray(ens.paths), np.asarray(ens.failed)
         if shift is None:  # the first piece's mean: a point within the ensemble's spread

@@ -1,15 +1,15 @@
-"""Ensemble integration of a :class:`StochasticSystem` on diffrax.
+"""Ensemble integration of a :class:`StochasticSystem` on diffrax: :func:`simulate`.
 
 Fixed steps: one ``lax.scan`` over steps of a diffrax solver (``solver.step``),
 vmapped over blocks of paths and their lanes, each block's noise drawn once per
-step by the system's driver (``nhsde.noise``).  (``diffeqsolve``'s own loop on a
-batched state took 2.0× the time of a hand-fused scan in the design measurement
-recorded in ``benchmarks/RESULTS.md``.)  Adaptive steps: ``diffeqsolve`` with a
+step by the system's driver.  (``diffeqsolve``'s own loop on a batched state
+took 2.0× the time of a hand-fused scan in the design measurement recorded in
+``benchmarks/RESULTS.md``.)  Adaptive steps: ``diffeqsolve`` with a
 ``PIDController`` and a ``VirtualBrownianTree`` per path.
 
 Paths run in chunks (``lax.scan`` over chunks), so memory is bounded by the
-chunk size whatever ``n_paths``; each chunk reduces its observations to sums
-for the first and second moments, so only ``n_save × k`` numbers per statistic
+chunk size whatever ``n_paths``; each chunk reduces its observations to moment
+sums (:class:`~nhsde.MomentSums`), so only ``n_save × k`` numbers per statistic
 survive unless per-path values are asked for.  Reverse mode recomputes each save
 interval (``jax.checkpoint``) when storing every step would cost more than
 about 1 GiB, so its memory is bounded by the steps per save interval.
@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable
 from typing import Literal
 
 import diffrax as dfx
@@ -28,103 +27,22 @@ import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
-from jaxtyping import Array, Bool, Float, Int
 
+from ._brownian import BLOCK, StepIncrement, block_keys
+from ._ensemble import Ensemble, MomentSums, Save, SimulationError
+from ._misc import cast_floats, check_key, check_number, check_steps
+from ._options import AbstractSteps, AdaptiveSteps, Batching, FixedSteps
 from ._params import validated
-from ._solvers import ExponentialEuler
+from ._solvers import SolverNeeds, solver_needs
 from ._system import StochasticSystem
-from .noise._brownian import BLOCK, StepIncrement, Wiener, block_keys
 
-__all__ = ["SOLVERS", "Ensemble", "Save", "SimulationError", "SolverInfo", "simulate"]
-
-
-@dataclasses.dataclass(frozen=True)
-class SolverInfo:
-    """A solver nhsde offers: its diffrax class and what it converges to."""
-
-    make: Callable[[StochasticSystem], dfx.AbstractSolver]
-    interpretation: Literal["ito", "stratonovich", "any"]
-    additive_only: bool
-    levy_area: type
-    strong_order: float  # general (commutative) noise
-    strong_order_additive: float
-    doc: str
-
-
-def _exponential(system):
-    if system.linear_drift is None:
-        raise ValueError(
-            "solver='exponential' needs the system's linear drift part (StochasticSystem.linear_drift); "
-            "this system does not declare one."
-        )
-    return ExponentialEuler(system.linear_drift)
-
-
-SOLVERS: dict[str, SolverInfo] = {
-    "euler": SolverInfo(lambda s: dfx.Euler(), "ito", False, dfx.BrownianIncrement, 0.5, 1.0, "Euler–Maruyama (Itô)"),
-    "milstein": SolverInfo(
-        lambda s: dfx.ItoMilstein(), "ito", False, dfx.BrownianIncrement, 1.0, 1.0, "Milstein (Itô)"
-    ),
-    "heun": SolverInfo(
-        lambda s: dfx.EulerHeun(),
-        "stratonovich",
-        False,
-        dfx.BrownianIncrement,
-        0.5,
-        1.0,
-        "Euler–Heun (Stratonovich): Euler in the drift, Heun in the noise",
-    ),
-    "heun2": SolverInfo(
-        lambda s: dfx.Heun(),
-        "stratonovich",
-        False,
-        dfx.BrownianIncrement,
-        0.5,
-        1.0,
-        "Heun's method (Stratonovich): Heun in drift and noise, second order in the drift",
-    ),
-    "sra1": SolverInfo(
-        lambda s: dfx.SRA1(scan_kind="lax"),
-        "any",
-        True,
-        dfx.SpaceTimeLevyArea,
-        1.5,
-        1.5,
-        "SRA1 stochastic Runge–Kutta (additive noise)",
-    ),
-    "exponential": SolverInfo(
-        _exponential,
-        "ito",
-        False,
-        dfx.BrownianIncrement,
-        0.5,
-        1.0,
-        "exponential Euler–Maruyama, exact in the linear friction: stable for any ε·dt",
-    ),
-}
-
-
-class SimulationError(RuntimeError):
-    """Paths failed (non-finite state or a solver error code) and ``on_failure='raise'``."""
+__all__ = ["simulate"]
 
 
 @dataclasses.dataclass(frozen=True)
-class Save:
-    """What ``simulate`` keeps: which components, at how many times, per path or not.
+class _Plan:
+    """The static shape of one run: what the compiled program depends on."""
 
-    - ``names``: state components or system observables; ``None`` = the whole state.
-    - ``n``: number of equally spaced save times from ``t0`` to ``t1`` inclusive;
-      ``n − 1`` must divide the number of steps (``None``: the largest such ``n ≤ 11``).
-    - ``paths``: also keep the per-path values, ``(n_paths, n, k)``.
-    """
-
-    names: tuple[str, ...] | None = None
-    n: int | None = None
-    paths: bool = False
-
-
-@dataclasses.dataclass(frozen=True)
-class _Config:
     n_paths: int
     first_path: int
     n_chunks: int
@@ -135,129 +53,36 @@ class _Config:
     t1: float
     substeps: int
     names: tuple[str, ...]
-    solver: str
     adaptive: bool
     rtol: float
     atol: float
     max_steps: int
     keep_paths: bool
     per_path_y0: bool
-    progress: bool
     devices: tuple
     checkpoint: bool
 
-
-class Ensemble(eqx.Module):
-    """Result of :func:`simulate`: moments of the saved quantities over the paths.
-
-    ``mean[i]``, ``cov[i]`` are the sample mean and (unbiased) covariance over the
-    paths that did not fail, at ``ts[i]``; ``mean_se``, ``cov_se`` their
-    Monte-Carlo standard errors.  ``failed[p]`` marks path ``p`` (non-finite state,
-    a solver error code, or saved values whose fourth power overflows the
-    precision); failed paths never enter a statistic.
-    """
-
-    ts: Float[Array, " n"]
-    mean: Float[Array, "n k"]
-    cov: Float[Array, "n k k"]
-    mean_se: Float[Array, "n k"]
-    cov_se: Float[Array, "n k k"]
-    n_used: Int[Array, ""]
-    failed: Bool[Array, " paths"]
-    paths: Float[Array, "paths n k"] | None
-    names: tuple[str, ...] = eqx.field(static=True)
-    roles: tuple[str, ...] = eqx.field(static=True)
-    solver: str = eqx.field(static=True)
-    dt: float = eqx.field(static=True)
-
     @property
-    def n_failed(self):
-        return jnp.sum(self.failed)
-
-    def select(self, names: tuple[str, ...]):
-        """``(mean, cov, mean_se, cov_se)`` restricted to ``names``."""
-        idx = []
-        for n in names:
-            if n not in self.names:
-                raise ValueError(f"{n!r} was not saved; saved: {self.names}.")
-            idx.append(self.names.index(n))
-        idx = np.asarray(idx)
-        ix = np.ix_(idx, idx)
-        return (
-            self.mean[:, idx],
-            self.cov[:, ix[0], ix[1]],
-            self.mean_se[:, idx],
-            self.cov_se[:, ix[0], ix[1]],
-        )
+    def intervals(self) -> int:
+        """Save intervals per chunk: the progress meter's ticks per chunk."""
+        return self.n_save - 1
 
 
-# ----------------------------------------------------------------------------- checks
-
-
-def _number(name, value, *, positive=False, integer=False):
-    if isinstance(value, jax.core.Tracer):
-        raise TypeError(f"{name} must be a concrete Python number (it fixes array shapes), not a traced value.")
-    if (
-        isinstance(value, bool)
-        or not isinstance(value, (int, float, np.integer, np.floating))
-        and not (isinstance(value, (np.ndarray, jax.Array)) and np.ndim(value) == 0)
-    ):
-        raise TypeError(f"{name}={value!r}; expected a number.")
-    v = float(value)
-    if not math.isfinite(v):
-        raise ValueError(f"{name}={v}; must be finite.")
-    if integer and v != int(v):
-        raise ValueError(f"{name}={value}; must be a whole number.")
-    if positive and v <= 0:
-        raise ValueError(f"{name}={value}; must be > 0.")
-    return int(v) if integer else v
-
-
-def _steps(name, span, step):
-    n = round(span / step)
-    if n < 1 or abs(n * step - span) > 1e-9 * span:
-        raise ValueError(f"{name}={step} must divide t1 − t0 = {span} into a whole number of steps.")
-    return n
-
-
-def _key(key):
-    if isinstance(key, jax.Array) and jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
-        if key.shape != ():
-            raise ValueError(f"key has shape {key.shape}; pass a single key, e.g. jax.random.key(0).")
-        return key
-    if isinstance(key, (jax.Array, np.ndarray)) and key.shape == (2,) and key.dtype == jnp.uint32:
-        return jr.wrap_key_data(key)
-    raise TypeError(f"key={key!r}; expected a JAX random key, e.g. jax.random.key(0).")
-
-
-# ----------------------------------------------------------------------------- progress
-
-_BAR = None
-
-
-def _tick(n):
-    if _BAR is not None:
-        _BAR.update(int(n))
-
-
-# ----------------------------------------------------------------------------- chunks
-
-
-def _fixed_chunk(system, params, cfg, y0, key, chunk_index):
-    """Observations ``(chunk, n_save, k)`` and failure flags of one chunk, fixed steps."""
-    info = SOLVERS[cfg.solver]
-    solver = info.make(system)
-    nb = cfg.chunk // BLOCK
-    keys = block_keys(key, cfg.first_path // BLOCK + chunk_index * nb, nb)
+def _fixed_chunk(system, params, needs: SolverNeeds, plan: _Plan, y0, key, chunk_index, meter, meter_state):
+    """Observations ``(chunk, n_save, k)``, failure flags and meter state of one chunk, fixed steps."""
+    solver = needs.solver
+    nb = plan.chunk // BLOCK
+    keys = block_keys(key, plan.first_path // BLOCK + chunk_index * nb, nb)
     dtype = y0.dtype
-    t0 = jnp.asarray(cfg.t0, dtype)
-    dt = jnp.asarray((cfg.t1 - cfg.t0) / cfg.n_steps, dtype)
-    base_dt = dt / cfg.substeps
-    per_save = cfg.n_steps // (cfg.n_save - 1)
-    observe = jax.vmap(jax.vmap(system.observe(cfg.names), in_axes=(None, 0, None)), in_axes=(None, 0, None))
+    t0 = jnp.asarray(plan.t0, dtype)
+    dt = jnp.asarray((plan.t1 - plan.t0) / plan.n_steps, dtype)
+    base_dt = dt / plan.substeps
+    per_save = plan.n_steps // plan.intervals
+    observe = jax.vmap(jax.vmap(system.observe(plan.names), in_axes=(None, 0, None)), in_axes=(None, 0, None))
+    total_ticks = plan.n_chunks * plan.intervals
 
     def terms(increment):
-        path = StepIncrement(increment, info.levy_area)
+        path = StepIncrement(increment, needs.levy_area)
         return dfx.MultiTerm(dfx.ODETerm(system.drift_fn), dfx.ControlTerm(system.diffusion_fn, path))
 
     def lane_step(y, t, increment):
@@ -267,7 +92,7 @@ def _fixed_chunk(system, params, cfg, y0, key, chunk_index):
     def block_step(y, k, block_key):
         # one draw per block; each lane gets its row through vmap
         increments = system.noise.block_increment(
-            block_key, k, base_dt, (system.noise_dim,), cfg.substeps, info.levy_area
+            block_key, k, base_dt, (system.noise_dim,), plan.substeps, needs.levy_area
         )
         t = t0 + k.astype(dtype) * dt
         return jax.vmap(lane_step, in_axes=(0, None, 0))(y, t, increments)
@@ -275,7 +100,7 @@ def _fixed_chunk(system, params, cfg, y0, key, chunk_index):
     step = jax.vmap(block_step, in_axes=(0, None, 0))
 
     def interval(carry, j):
-        y, ok = carry
+        y, ok, meter_state = carry
 
         def body(state, _):
             y, ok, k = state
@@ -286,58 +111,55 @@ def _fixed_chunk(system, params, cfg, y0, key, chunk_index):
         start = (j * per_save).astype(jnp.int32)
         (y, ok, _), _ = jax.lax.scan(body, (y, ok, start), None, length=per_save)
         ok = ok & jnp.all(jnp.isfinite(y), axis=-1)
-        if cfg.progress:
-            jax.debug.callback(_tick, per_save)
-        return (y, ok), observe(t0 + ((j + 1) * per_save).astype(dtype) * dt, y, params)
+        done = chunk_index * plan.intervals + j + 1
+        meter_state = meter.step(meter_state, jnp.asarray(done, dtype) / total_ticks)
+        return (y, ok, meter_state), observe(t0 + ((j + 1) * per_save).astype(dtype) * dt, y, params)
 
     y = y0.reshape(nb, BLOCK, -1)
-    # The offered solvers keep no state between steps; init only runs diffrax's checks.
+    # The solvers used here keep no state between steps; init only runs diffrax's checks.
     first = system.noise.block_increment(
-        keys[0], jnp.int32(0), base_dt, (system.noise_dim,), cfg.substeps, info.levy_area
+        keys[0], jnp.int32(0), base_dt, (system.noise_dim,), plan.substeps, needs.levy_area
     )
     solver.init(terms(jax.tree_util.tree_map(lambda a: a[0], first)), t0, t0 + dt, y[0, 0], params)
     ok = jnp.all(jnp.isfinite(y), axis=-1)
     first_obs = observe(t0, y, params)
-    interval = jax.checkpoint(interval) if cfg.checkpoint else interval
-    (_, ok), rest = jax.lax.scan(interval, (y, ok), jnp.arange(cfg.n_save - 1))
+    interval = jax.checkpoint(interval) if plan.checkpoint else interval
+    (_, ok, meter_state), rest = jax.lax.scan(interval, (y, ok, meter_state), jnp.arange(plan.intervals))
     obs = jnp.concatenate([first_obs[None], rest], axis=0)  # (n_save, nb, BLOCK, k)
-    obs = jnp.moveaxis(obs, 0, 2).reshape(cfg.chunk, cfg.n_save, -1)
-    return obs, ~ok.reshape(cfg.chunk)
+    obs = jnp.moveaxis(obs, 0, 2).reshape(plan.chunk, plan.n_save, -1)
+    return obs, ~ok.reshape(plan.chunk), meter_state
 
 
-def _adaptive_chunk(system, params, cfg, y0, key, chunk_index):
-    """As :func:`_fixed_chunk`, with adaptive steps (diffeqsolve + VirtualBrownianTree)."""
-    info = SOLVERS[cfg.solver]
-    solver = info.make(system)
-    if not isinstance(solver, dfx.SRA1):
-        solver = dfx.HalfSolver(solver)  # step doubling gives the error estimate
+def _adaptive_chunk(system, params, needs: SolverNeeds, plan: _Plan, y0, key, chunk_index, meter, meter_state):
+    """As :func:`_fixed_chunk`, with adaptive steps (``diffeqsolve`` + ``VirtualBrownianTree``)."""
+    solver = needs.solver if needs.embedded_error else dfx.HalfSolver(needs.solver)
     dtype = y0.dtype
-    ts = jnp.linspace(cfg.t0, cfg.t1, cfg.n_save, dtype=dtype)
-    dt0 = (cfg.t1 - cfg.t0) / cfg.n_steps
-    observe = jax.vmap(system.observe(cfg.names), in_axes=(0, 0, None))
-    ids = cfg.first_path + chunk_index * cfg.chunk + jnp.arange(cfg.chunk)
+    ts = jnp.linspace(plan.t0, plan.t1, plan.n_save, dtype=dtype)
+    dt0 = (plan.t1 - plan.t0) / plan.n_steps
+    observe = jax.vmap(system.observe(plan.names), in_axes=(0, 0, None))
+    ids = plan.first_path + chunk_index * plan.chunk + jnp.arange(plan.chunk)
 
     def one(y0_, path_id):
         path = dfx.VirtualBrownianTree(
-            cfg.t0,
-            cfg.t1,
+            plan.t0,
+            plan.t1,
             tol=dt0 / 1024,
             shape=(system.noise_dim,),
             key=jr.fold_in(key, path_id),
-            levy_area=info.levy_area,
+            levy_area=needs.levy_area,
         )
         terms = dfx.MultiTerm(dfx.ODETerm(system.drift_fn), dfx.ControlTerm(system.diffusion_fn, path))
         sol = dfx.diffeqsolve(
             terms,
             solver,
-            cfg.t0,
-            cfg.t1,
+            plan.t0,
+            plan.t1,
             dt0,
             y0_,
             params,
             saveat=dfx.SaveAt(ts=ts),
-            stepsize_controller=dfx.PIDController(rtol=cfg.rtol, atol=cfg.atol),
-            max_steps=cfg.max_steps,
+            stepsize_controller=dfx.PIDController(rtol=plan.rtol, atol=plan.atol),
+            max_steps=plan.max_steps,
             throw=False,
         )
         ys = jnp.where(jnp.isfinite(sol.ys), sol.ys, jnp.nan)
@@ -345,168 +167,102 @@ def _adaptive_chunk(system, params, cfg, y0, key, chunk_index):
         return observe(ts, ys, params), bad
 
     obs, bad = jax.vmap(one)(y0, ids)
-    if cfg.progress:
-        jax.debug.callback(_tick, cfg.n_steps)
-    return obs, bad
-
-
-# ----------------------------------------------------------------------------- moments
-
-
-def _block_sums(obs, valid, shift):
-    """Moment sums of each block of ``BLOCK`` paths, about ``shift``.
-
-    Every block is reduced by the same fixed-shape loop body, and the blocks are
-    then added one after another in path order (:func:`_accumulate`), so every
-    addition happens in the same order for any chunk size or device count: the
-    statistics are bitwise independent of both.
-    """
-
-    def one(_, block):
-        obs_b, valid_b = block
-        z = jnp.where(valid_b[:, None, None], obs_b - shift, 0.0)
-        zz = jnp.einsum("cni,cnj->cnij", z, z)
-        z_zz = jnp.einsum("cni,cnj->cnij", z, z * z)
-        return None, (
-            jnp.sum(z, 0),
-            jnp.sum(zz, 0),
-            jnp.sum(z_zz, 0),
-            jnp.sum(zz * zz, 0),
-            jnp.sum(valid_b, dtype=jnp.int32),
-        )
-
-    blocks = (obs.reshape(-1, BLOCK, *obs.shape[1:]), valid.reshape(-1, BLOCK))
-    return jax.lax.scan(one, None, blocks)[1]
-
-
-def _accumulate(carry, block_sums):
-    def add(acc, block):
-        return jax.tree_util.tree_map(jnp.add, acc, block), None
-
-    return jax.lax.scan(add, carry, block_sums)[0]
-
-
-def _central_product_moment(a, m2, m3, m4):
-    """``E[(z_i − a_i)² (z_j − a_j)²]`` from moments about the shift.
-
-    ``a = E z``, ``m2_ij = E z_i z_j``, ``m3_ij = E z_i z_j²``, ``m4_ij = E z_i² z_j²``;
-    the variance of the product of the centred components is this minus ``cov²``.
-    """
-    ai, aj = a[:, :, None], a[:, None, :]
-    d = jnp.diagonal(m2, axis1=1, axis2=2)
-    return (
-        m4
-        - 2 * ai * m3
-        - 2 * aj * jnp.swapaxes(m3, 1, 2)
-        + aj**2 * d[:, :, None]
-        + ai**2 * d[:, None, :]
-        + 4 * ai * aj * m2
-        - 3 * ai**2 * aj**2
-    )
-
-
-def _safe_sqrt(v):
-    pos = v > 0
-    return jnp.where(pos, jnp.sqrt(jnp.where(pos, v, 1.0)), 0.0)
+    meter_state = meter.step(meter_state, jnp.asarray(chunk_index + 1, dtype) / plan.n_chunks)
+    return obs, bad, meter_state
 
 
 @eqx.filter_jit
-def _run(system: StochasticSystem, y0, key, cfg: _Config):
-    params = validated(system.params)
+def _run(system: StochasticSystem, needs: SolverNeeds, y0, key, about, plan: _Plan, meter):
     # Compute in the state's precision: float leaves follow y0's dtype.
-    params = jax.tree_util.tree_map(
-        lambda p: p.astype(y0.dtype) if jnp.issubdtype(jnp.result_type(p), jnp.floating) else p, params
-    )
-    chunk_fn = _adaptive_chunk if cfg.adaptive else _fixed_chunk
-    total = cfg.n_chunks * cfg.chunk
-    if cfg.per_path_y0:
-        y0_all = jnp.concatenate([y0, jnp.broadcast_to(y0[:1], (total - cfg.n_paths, y0.shape[1]))])
+    params = cast_floats(validated(system.params), y0.dtype)
+    chunk_fn = _adaptive_chunk if plan.adaptive else _fixed_chunk
+    total = plan.n_chunks * plan.chunk
+    if plan.per_path_y0:
+        y0_all = jnp.concatenate([y0, jnp.broadcast_to(y0[:1], (total - plan.n_paths, y0.shape[1]))])
     else:
         y0_all = jnp.broadcast_to(y0, (total, y0.shape[0]))
 
-    def run(c, size):
-        """Observations, failure flags and validity of the ``size`` paths of chunk ``c``."""
-        y0c = jax.lax.dynamic_slice_in_dim(y0_all, c * cfg.chunk, size)
-        obs, bad = chunk_fn(system, params, dataclasses.replace(cfg, chunk=size), y0c, key, c)
+    def run(c, size, meter, meter_state):
+        """Observations, failure flags, validity and meter state of the ``size`` paths of chunk ``c``."""
+        y0c = jax.lax.dynamic_slice_in_dim(y0_all, c * plan.chunk, size)
+        sized = dataclasses.replace(plan, chunk=size)
+        obs, bad, meter_state = chunk_fn(system, params, needs, sized, y0c, key, c, meter, meter_state)
         # A path whose saved values are too large for fourth moments in this precision
         # (e.g. escaping to infinity) counts as failed rather than overflowing the sums.
         bad = bad | ~jnp.all(jnp.isfinite(obs.reshape(size, -1) ** 4), axis=1)
-        valid = (c * cfg.chunk + jnp.arange(size) < cfg.n_paths) & ~bad
-        return obs, bad, valid
+        valid = (c * plan.chunk + jnp.arange(size) < plan.n_paths) & ~bad
+        return obs, bad, valid, meter_state
 
-    def chunk(c):
-        return run(c, cfg.chunk)
-
-    n_dev = len(cfg.devices)
+    meter_state = meter.init()
+    n_dev = len(plan.devices)
     if n_dev == 1:
-        obs0, bad0, valid0 = chunk(0)
+        obs0, bad0, valid0, meter_state = run(0, plan.chunk, meter, meter_state)
     else:  # the first block alone gives the shift before the devices start
-        obs0, bad0, valid0 = run(0, BLOCK)
-    # Sums are taken about the first path, a point within the spread of the
-    # ensemble, so float32 second moments do not cancel.
-    shift = jax.lax.stop_gradient(jnp.where(valid0[0], obs0[0], 0.0))
-    k = obs0.shape[-1]
-    zeros = (
-        jnp.zeros((cfg.n_save, k), obs0.dtype),
-        jnp.zeros((cfg.n_save, k, k), obs0.dtype),
-        jnp.zeros((cfg.n_save, k, k), obs0.dtype),
-        jnp.zeros((cfg.n_save, k, k), obs0.dtype),
-        jnp.zeros((), jnp.int32),
-    )
-
-    def chunk_sums(c):
-        obs, bad, valid = chunk(c)
-        return _block_sums(obs, valid, shift), (obs if cfg.keep_paths else None, bad)
+        obs0, bad0, valid0, _ = run(0, BLOCK, dfx.NoProgressMeter(), None)
+    if about is None:
+        # Sums are taken about the first path, a point within the spread of the
+        # ensemble, so float32 second moments do not cancel.
+        about = jax.lax.stop_gradient(jnp.where(valid0[0], obs0[0], 0.0))
+    zeros = MomentSums.zeros(about.astype(obs0.dtype))
 
     if n_dev == 1:
-        sums = _accumulate(zeros, _block_sums(obs0, valid0, shift))
 
-        def scan_body(sums, c):
-            block_sums, out = chunk_sums(c)
-            return _accumulate(sums, block_sums), out
+        def scan_body(carry, c):
+            sums, meter_state = carry
+            obs, bad, valid, meter_state = run(c, plan.chunk, meter, meter_state)
+            return (sums.add_paths(obs, valid), meter_state), (obs if plan.keep_paths else None, bad)
 
-        sums, (obs_rest, bad_rest) = jax.lax.scan(scan_body, sums, jnp.arange(1, cfg.n_chunks))
+        start = (zeros.add_paths(obs0, valid0), meter_state)
+        (sums, meter_state), (obs_rest, bad_rest) = jax.lax.scan(scan_body, start, jnp.arange(1, plan.n_chunks))
         obs_all = None if obs_rest is None else jnp.concatenate([obs0[None], obs_rest])
         bad_all = jnp.concatenate([bad0[None], bad_rest])
     else:
-        mesh = jax.sharding.Mesh(np.asarray(cfg.devices), ("paths",))
+        mesh = jax.sharding.Mesh(np.asarray(plan.devices), ("paths",))
         spec = jax.sharding.PartitionSpec("paths")
-        sharded = jax.shard_map(
-            lambda c: jax.tree_util.tree_map(lambda a: a[None], chunk_sums(c[0])),
-            mesh=mesh,
-            in_specs=spec,
-            out_specs=spec,
-            check_vma=False,
+
+        def device_sums(c):
+            obs, bad, valid, _ = run(c[0], plan.chunk, dfx.NoProgressMeter(), None)
+            out = (zeros.block_sums(obs, valid), obs if plan.keep_paths else None, bad)
+            return jax.tree_util.tree_map(lambda a: a[None], out)
+
+        sharded = jax.shard_map(device_sums, mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)
+
+        def round_body(carry, r):
+            sums, meter_state = carry
+            block_sums, obs, bad = sharded(r * n_dev + jnp.arange(n_dev))
+            # devices in order, and blocks in order within each: path order
+            sums = sums.add_blocks(jax.tree_util.tree_map(lambda a: a.reshape(-1, *a.shape[2:]), block_sums))
+            meter_state = meter.step(meter_state, (r + 1).astype(y0.dtype) / (plan.n_chunks // n_dev))
+            return (sums, meter_state), (obs, bad)
+
+        (sums, meter_state), (obs_all, bad_all) = jax.lax.scan(
+            round_body, (zeros, meter_state), jnp.arange(plan.n_chunks // n_dev)
         )
-
-        def round_body(sums, r):
-            block_sums, out = sharded(r * n_dev + jnp.arange(n_dev))
-            flat = jax.tree_util.tree_map(lambda a: a.reshape(-1, *a.shape[2:]), block_sums)
-            return _accumulate(sums, flat), out
-
-        sums, (obs_all, bad_all) = jax.lax.scan(round_body, zeros, jnp.arange(cfg.n_chunks // n_dev))
         obs_all = None if obs_all is None else obs_all.reshape(-1, *obs_all.shape[2:])
-        bad_all = bad_all.reshape(-1, cfg.chunk)
-    s1, s2, s3, s4, n = sums
-    nf = n.astype(s1.dtype)
-    mean = shift + s1 / nf
-    cov = (s2 - jnp.einsum("ni,nj->nij", s1, s1) / nf) / jnp.maximum(nf - 1, 1)
-    diag = jnp.diagonal(cov, axis1=1, axis2=2)
-    mean_se = _safe_sqrt(diag / nf)
-    cov_se = _safe_sqrt((_central_product_moment(s1 / nf, s2 / nf, s3 / nf, s4 / nf) - cov**2) / nf)
-    failed = bad_all.reshape(-1)[: cfg.n_paths]
-    paths = None
-    if cfg.keep_paths:
-        paths = obs_all.reshape(total, cfg.n_save, -1)[: cfg.n_paths]
-    ts = jnp.linspace(cfg.t0, cfg.t1, cfg.n_save, dtype=y0.dtype)
-    return ts, mean, cov, mean_se, cov_se, n, failed, paths
-
-
-# ----------------------------------------------------------------------------- public
+        bad_all = bad_all.reshape(-1, plan.chunk)
+    meter.close(meter_state)
+    failed = bad_all.reshape(-1)[: plan.n_paths]
+    paths = None if obs_all is None else obs_all.reshape(total, plan.n_save, -1)[: plan.n_paths]
+    ts = jnp.linspace(plan.t0, plan.t1, plan.n_save, dtype=y0.dtype)
+    return ts, sums, failed, paths
 
 
 def _residuals_too_large(steps_per_save, chunk, state_dim, dtype) -> bool:
     return 10 * steps_per_save * chunk * state_dim * jnp.dtype(dtype).itemsize > 2**30
+
+
+def _check_y0(system, y0, n_paths):
+    y0 = jnp.asarray(y0)
+    if not jnp.issubdtype(y0.dtype, jnp.floating):
+        y0 = y0.astype(jnp.result_type(float))
+    d = system.state_dim
+    if y0.shape not in ((d,), (n_paths, d)):
+        raise ValueError(
+            f"y0 has shape {y0.shape}; expected ({d},) or ({n_paths}, {d}) for the state {system.layout.names}."
+        )
+    if not isinstance(y0, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(y0))):
+        raise ValueError("y0 contains non-finite values.")
+    return y0
 
 
 def simulate(
@@ -516,123 +272,116 @@ def simulate(
     *,
     n_paths: int,
     t1: float,
-    dt: float,
+    dt: float | None = None,
     t0: float = 0.0,
-    solver: str = "euler",
+    solver: str | dfx.AbstractSolver = "euler",
+    steps: AbstractSteps | None = None,
     save: Save | None = None,
-    chunk_size: int | None = None,
-    brownian_dt: float | None = None,
-    adaptive: bool = False,
-    rtol: float = 1e-3,
-    atol: float = 1e-3,
-    max_steps: int = 100_000,
+    batching: Batching | None = None,
     on_failure: Literal["raise", "exclude"] = "raise",
-    progress: bool = False,
+    progress_meter: dfx.AbstractProgressMeter | None = None,
     first_path: int = 0,
-    devices=None,
-    checkpoint: bool | None = None,
 ) -> Ensemble:
-    """Integrate ``n_paths`` independent paths of ``system`` from ``y0``.
+    """Integrate ``n_paths`` independent paths of ``system`` from ``y0``: the ensemble of S0 (1.15).
 
-    - ``y0``: ``(d,)`` for a common initial state or ``(n_paths, d)``.
-    - ``dt``: the step (fixed steps) or the first step (``adaptive=True``).
-    - ``solver``: one of :data:`SOLVERS`; a system written in the other calculus
-      is converted first (:meth:`StochasticSystem.converted`).
-    - ``brownian_dt``: base step of the Brownian path (divides ``dt``); solves with
-      different ``dt`` and the same ``brownian_dt`` and key share one path.
-    - ``chunk_size``: paths per chunk (a multiple of 64); memory scales with it.
-    - ``first_path``: index of the first path (a multiple of 64): paths
-      ``first_path … first_path + n_paths − 1`` of the ensemble that ``key``
-      defines, so a long run can be computed piecewise and resumed.
-    - ``checkpoint``: in reverse mode, ``True`` recomputes each save interval
-      instead of storing every step (memory ∝ steps per save interval, about one
-      extra forward pass); ``False`` stores every step (faster, memory ∝ steps ×
-      chunk); ``None`` stores while the estimated residuals (≈ 10 × steps per
-      interval × chunk × state size × bytes) stay under 1 GiB.
-    - ``devices``: the devices to shard chunks over (default: all of
-      ``jax.devices()``); one chunk per device at a time, statistics bitwise the
-      same as on one device.
-    - ``on_failure``: ``'raise'`` raises :class:`SimulationError` (or, under a JAX
-      transformation, a run-time error) if any path fails; ``'exclude'`` leaves
-      failed paths out of the statistics and marks them in ``Ensemble.failed``.
+    Arguments:
+        system: the SDE (a scene's ``build()``).
+        y0: ``(d,)`` for a common initial state or ``(n_paths, d)``.
+        key: a JAX random key; the same key gives bitwise the same result, whatever the batching.
+        n_paths, t0, t1: paths and time interval.
+        dt: fixed step, shorthand for ``steps=FixedSteps(dt)``.
+        solver: a diffrax SDE solver object (``diffrax.ShARK()``, …) or an alias of
+            ``nhsde.SOLVERS``; a system written in the other calculus is converted first.
+        steps: :class:`~nhsde.FixedSteps` (with ``brownian_dt``, a step budget) or
+            :class:`~nhsde.AdaptiveSteps` (tolerances).
+        save: what to keep (:class:`~nhsde.Save`); default every state component at ≤ 11 times.
+        batching: chunk size, devices, reverse-mode checkpointing (:class:`~nhsde.Batching`).
+        on_failure: ``'raise'`` raises :class:`~nhsde.SimulationError` (under a JAX
+            transformation, a run-time error) if any path fails; ``'exclude'``
+            leaves failed paths out of the statistics and marks them in ``Ensemble.failed``.
+        progress_meter: a diffrax progress meter (``diffrax.TqdmProgressMeter()``,
+            ``diffrax.TextProgressMeter()``); it reports under ``jit``, ``grad`` and ``vmap``.
+        first_path: index of the first path (a multiple of 64): paths
+            ``first_path … first_path + n_paths − 1`` of the ensemble ``key`` defines,
+            so a long run can be computed piecewise and resumed.
 
-    Same key ⇒ bitwise-identical results, whatever ``chunk_size``.
+    Returns:
+        an :class:`~nhsde.Ensemble` of means, covariances, their standard errors and failure flags.
     """
-    global _BAR
     if not isinstance(system, StochasticSystem):
         raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
-    if solver not in SOLVERS:
-        raise ValueError(f"solver={solver!r}; allowed: {', '.join(SOLVERS)}.")
     if on_failure not in ("raise", "exclude"):
         raise ValueError(f"on_failure={on_failure!r}; allowed: 'raise', 'exclude'.")
-    info = SOLVERS[solver]
-    info.make(system)  # structural checks of the solver against the system
-    if info.additive_only and not system.additive_noise:
-        raise ValueError(
-            f"solver={solver!r} needs additive noise, but this system's diffusion depends on the state; "
-            "use 'euler', 'milstein', 'heun' or 'heun2'."
-        )
-    if not system.noise.continuous and solver != "euler":
-        raise ValueError(f"solver={solver!r} does not apply to a system driven by jumps; use 'euler' (S0 §2, Remark).")
-    if adaptive and not isinstance(system.noise, Wiener):
-        raise ValueError("adaptive steps need a Wiener driver (VirtualBrownianTree); use fixed steps.")
-    n_paths = _number("n_paths", n_paths, integer=True)
+    needs = solver_needs(solver, system)
+    if steps is None:
+        if dt is None:
+            raise TypeError("simulate needs a step: dt=… or steps=FixedSteps(dt=…) / AdaptiveSteps(dt=…).")
+        steps = FixedSteps(dt)
+    elif dt is not None:
+        raise TypeError(f"dt={dt} and steps={steps!r}: give the step once, in steps.")
+    if not isinstance(steps, AbstractSteps):
+        raise TypeError(f"steps={steps!r}; expected nhsde.FixedSteps(...) or nhsde.AdaptiveSteps(...).")
+    adaptive = isinstance(steps, AdaptiveSteps)
+    if adaptive and not system.noise.continuous:
+        raise ValueError("adaptive steps need a Wiener driver (VirtualBrownianTree); use FixedSteps.")
+    n_paths = check_number("n_paths", n_paths, integer=True)
     if n_paths < 1:
         raise ValueError(f"n_paths={n_paths}; must be ≥ 1.")
-    first_path = _number("first_path", first_path, integer=True)
+    first_path = check_number("first_path", first_path, integer=True)
     if first_path < 0 or first_path % BLOCK:
         raise ValueError(f"first_path={first_path}; must be a non-negative multiple of {BLOCK}.")
-    t0 = _number("t0", t0)
-    t1 = _number("t1", t1)
+    t0 = check_number("t0", t0)
+    t1 = check_number("t1", t1)
     if t1 <= t0:
         raise ValueError(f"t1={t1} must be > t0={t0}.")
-    dt = _number("dt", dt, positive=True)
-    if dt > t1 - t0:
-        raise ValueError(f"dt={dt} is larger than t1 − t0 = {t1 - t0}.")
-    n_steps = _steps("dt", t1 - t0, dt)
+    step = float(steps.dt)
+    if step > t1 - t0:
+        raise ValueError(f"dt={step} is larger than t1 − t0 = {t1 - t0}.")
+    n_steps = check_steps("dt", t1 - t0, step)
     substeps = 1
-    if brownian_dt is not None:
-        brownian_dt = _number("brownian_dt", brownian_dt, positive=True)
-        substeps = _steps("brownian_dt", (t1 - t0) / n_steps, brownian_dt)
-    d = system.state_dim
-    y0 = jnp.asarray(y0)
-    if not jnp.issubdtype(y0.dtype, jnp.floating):
-        y0 = y0.astype(jnp.result_type(float))
-    if y0.shape not in ((d,), (n_paths, d)):
-        raise ValueError(
-            f"y0 has shape {y0.shape}; expected ({d},) or ({n_paths}, {d}) for the state {system.layout.names}."
-        )
-    if not isinstance(y0, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(y0))):
-        raise ValueError("y0 contains non-finite values.")
-    key = _key(key)
+    if isinstance(steps, FixedSteps):
+        if n_steps > steps.max_steps:
+            raise ValueError(
+                f"dt={step} makes {n_steps} steps of (t0, t1) = ({t0}, {t1}), beyond the budget "
+                f"max_steps={steps.max_steps}; raise it with steps=FixedSteps(dt, max_steps=…) to run this long."
+            )
+        if steps.brownian_dt is not None:
+            substeps = check_steps("brownian_dt", (t1 - t0) / n_steps, float(steps.brownian_dt))
+    y0 = _check_y0(system, y0, n_paths)
+    key = check_key(key)
     save = Save() if save is None else save
     if not isinstance(save, Save):
         raise TypeError(f"save={save!r}; expected nhsde.Save(...).")
-    names = system.layout.names if save.names is None else tuple(save.names)
+    names = system.layout.names if save.names is None else save.names
     system.observe(names)  # checks the names
     n_save = save.n
     if n_save is None:
         n_save = max(k for k in range(2, 12) if n_steps % (k - 1) == 0)
-    n_save = _number("save.n", n_save, integer=True)
-    if n_save < 2 or n_steps % (n_save - 1):
-        raise ValueError(f"save.n={n_save}: n − 1 must be ≥ 1 and divide the {n_steps} steps.")
+    n_save = check_number("save.n", n_save, integer=True)
+    if n_steps % (n_save - 1):
+        raise ValueError(f"save.n={n_save}: n − 1 must divide the {n_steps} steps.")
+    about = None
+    if save.about is not None:
+        about = jnp.asarray(save.about, y0.dtype)
+        if about.shape != (n_save, len(names)):
+            raise ValueError(f"save.about has shape {about.shape}; expected ({n_save}, {len(names)}).")
+    batching = Batching() if batching is None else batching
+    if not isinstance(batching, Batching):
+        raise TypeError(f"batching={batching!r}; expected nhsde.Batching(...).")
+    chunk_size = batching.chunk_size
     if chunk_size is None:
         chunk_size = min(BLOCK * math.ceil(n_paths / BLOCK), 8192)
-    chunk_size = _number("chunk_size", chunk_size, integer=True)
-    if chunk_size < BLOCK or chunk_size % BLOCK:
-        raise ValueError(f"chunk_size={chunk_size}; must be a positive multiple of {BLOCK}.")
-    rtol = _number("rtol", rtol, positive=True)
-    atol = _number("atol", atol, positive=True)
-    max_steps = _number("max_steps", max_steps, integer=True, positive=True)
-    if info.interpretation not in ("any", system.interpretation):
-        system = system.converted(info.interpretation)
-    devices = tuple(jax.devices() if devices is None else devices)
-    if not devices:
-        raise ValueError("devices is empty; pass None for all devices or a list of jax devices.")
+    chunk_size = check_number("chunk_size", chunk_size, integer=True)
+    if needs.interpretation not in ("any", system.interpretation):
+        system = system.converted(needs.interpretation)
+    devices = tuple(jax.devices()) if batching.devices is None else batching.devices
     n_chunks = math.ceil(n_paths / chunk_size)
     if len(devices) > 1:
         n_chunks = len(devices) * math.ceil(n_chunks / len(devices))
-    cfg = _Config(
+    checkpoint = batching.checkpoint
+    if checkpoint is None:
+        checkpoint = _residuals_too_large(n_steps // (n_save - 1), chunk_size, system.state_dim, y0.dtype)
+    plan = _Plan(
         n_paths=n_paths,
         first_path=first_path,
         n_chunks=n_chunks,
@@ -643,29 +392,22 @@ def simulate(
         t1=t1,
         substeps=substeps,
         names=names,
-        solver=solver,
-        adaptive=bool(adaptive),
-        rtol=rtol,
-        atol=atol,
-        max_steps=max_steps,
+        adaptive=adaptive,
+        rtol=float(getattr(steps, "rtol", 0.0)),
+        atol=float(getattr(steps, "atol", 0.0)),
+        max_steps=int(steps.max_steps),
         keep_paths=bool(save.paths),
         per_path_y0=y0.ndim == 2,
-        progress=bool(progress),
         devices=devices,
-        checkpoint=_residuals_too_large(n_steps // (n_save - 1), chunk_size, system.state_dim, y0.dtype)
-        if checkpoint is None
-        else bool(checkpoint),
+        checkpoint=bool(checkpoint),
     )
-    if progress:
-        from tqdm.auto import tqdm
-
-        _BAR = tqdm(total=cfg.n_chunks * n_steps, unit="step", desc=f"{n_paths} paths")
-    try:
-        ts, mean, cov, mean_se, cov_se, n_used, failed, paths = _run(system, y0, key, cfg)
-    finally:
-        if _BAR is not None:
-            _BAR.close()
-            _BAR = None
+    meter = dfx.NoProgressMeter() if progress_meter is None else progress_meter
+    if not isinstance(meter, dfx.AbstractProgressMeter):
+        raise TypeError(
+            f"progress_meter={meter!r}; expected a diffrax progress meter, e.g. diffrax.TqdmProgressMeter()."
+        )
+    ts, sums, failed, paths = _run(system, needs, y0, key, about, plan, meter)
+    mean, cov, mean_se, cov_se = sums.statistics()
     n_failed = jnp.sum(failed)
     if on_failure == "raise":
         concrete = not isinstance(n_failed, jax.core.Tracer)
@@ -686,11 +428,12 @@ def simulate(
         cov=cov,
         mean_se=mean_se,
         cov_se=cov_se,
-        n_used=n_used,
+        n_used=sums.count,
         failed=failed,
         paths=paths,
+        sums=sums,
         names=names,
         roles=roles,
-        solver=solver,
+        solver=needs.name,
         dt=(t1 - t0) / n_steps,
     )

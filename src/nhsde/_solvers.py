@@ -1,4 +1,13 @@
-"""Solvers nhsde adds to diffrax's.
+"""Solvers: nhsde's own, the string aliases, and what any diffrax SDE solver needs, read from its type.
+
+``simulate`` takes any diffrax SDE solver object (``diffrax.Euler()``,
+``diffrax.ShARK()``, ``diffrax.SlowRK()``, …) or nhsde's own; its needs come from
+diffrax's types: an ``AbstractItoSolver`` converges to the Itô solution, an
+``AbstractStratonovichSolver`` to the Stratonovich one (the system is converted
+first, S0 §2 Remark), a stochastic Runge–Kutta method whose tableau is for
+additive noise needs additive noise (and then both calculi agree), and
+``minimal_levy_area`` says which Lévy area the driver must draw.  The strings
+of :data:`SOLVERS` are aliases for the CLI and run files.
 
 :class:`ExponentialEuler` treats the stiff linear part ``A`` of the drift
 ``a(Z) = A Z + N(Z)`` (viscous friction) exactly:
@@ -20,23 +29,27 @@ over paths they are computed once per step.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 import diffrax as dfx
+import equinox as eqx
 import jax.numpy as jnp
 from jax.scipy.linalg import expm
 
-__all__ = ["ExponentialEuler"]
+from ._system import StochasticSystem
+
+__all__ = ["SOLVERS", "ExponentialEuler", "SolverNeeds", "solver_needs"]
 
 
 class ExponentialEuler(dfx.AbstractItoSolver):
     """Exponential Euler–Maruyama for ``dZ = (A Z + N(Z)) dt + b(Z) dW`` (Itô).
 
     ``linear(params) -> A`` gives the linear part of the drift; the drift term's
-    vector field is the full drift ``A Z + N(Z)``.
+    vector field is the full drift ``A Z + N(Z)``.  Left ``None``, ``simulate``
+    takes the system's declared ``linear_drift``.
     """
 
-    linear: Callable
+    linear: Callable | None = None
     term_structure: ClassVar = dfx.MultiTerm[tuple[dfx.AbstractTerm, dfx.AbstractTerm]]
     interpolation_cls: ClassVar = dfx.LocalLinearInterpolation
 
@@ -53,6 +66,8 @@ class ExponentialEuler(dfx.AbstractItoSolver):
         del solver_state, made_jump
         drift, diffusion = terms.terms
         h = t1 - t0
+        if self.linear is None:
+            raise ValueError("ExponentialEuler needs linear(params) -> A; simulate fills it from the system.")
         a = self.linear(args).astype(y0.dtype)
         d = y0.shape[0]
         block = jnp.block([[a * h, h * jnp.eye(d, dtype=y0.dtype)], [jnp.zeros((d, 2 * d), y0.dtype)]])
@@ -65,3 +80,90 @@ class ExponentialEuler(dfx.AbstractItoSolver):
 
     def func(self, terms, t0, y0, args):
         return terms.vf(t0, y0, args)
+
+
+SOLVERS: dict[str, Callable[[], dfx.AbstractSolver]] = {
+    "euler": dfx.Euler,
+    "milstein": dfx.ItoMilstein,
+    "heun": dfx.EulerHeun,
+    "heun2": lambda: dfx.Heun(scan_kind="lax"),
+    "sra1": lambda: dfx.SRA1(scan_kind="lax"),
+    "exponential": ExponentialEuler,
+}
+"""String aliases (CLI, run files) → solver objects: Euler–Maruyama and Milstein (Itô); Euler–Heun
+(Stratonovich, Euler in the drift); Heun (Stratonovich, second order in the drift); SRA1 (additive
+noise, strong order 1.5); exponential Euler–Maruyama (exact in the linear friction)."""
+
+
+class SolverNeeds(eqx.Module):
+    """What a solver needs of a system and its driver, read from the solver's type."""
+
+    solver: dfx.AbstractSolver
+    name: str = eqx.field(static=True)
+    interpretation: Literal["ito", "stratonovich", "any"] = eqx.field(static=True)
+    additive_only: bool = eqx.field(static=True)
+    levy_area: type = eqx.field(static=True)
+    embedded_error: bool = eqx.field(static=True)
+
+
+def _levy_area(solver) -> type:
+    need = getattr(solver, "minimal_levy_area", dfx.AbstractBrownianIncrement)
+    for offered in (dfx.BrownianIncrement, dfx.SpaceTimeLevyArea):
+        if issubclass(offered, need):
+            return offered
+    raise ValueError(
+        f"solver={type(solver).__name__}() needs {need.__name__}, which nhsde's counter-based driver does not "
+        "draw (it offers Brownian increments and space-time Lévy area); choose another solver."
+    )
+
+
+def solver_needs(solver: str | dfx.AbstractSolver, system: StochasticSystem) -> SolverNeeds:
+    """The solver object for ``solver`` (an alias of :data:`SOLVERS` or a diffrax solver) and its needs.
+
+    Raises naming ``solver`` when it cannot solve ``system``: not an SDE solver,
+    additive-noise-only on a state-dependent diffusion, not Euler–Maruyama on a
+    driver with jumps (S0 §2, Remark), or the exponential solver on a system
+    without a declared linear drift.
+    """
+    if isinstance(solver, str):
+        if solver not in SOLVERS:
+            raise ValueError(f"solver={solver!r}; allowed: {', '.join(SOLVERS)}, or a diffrax SDE solver object.")
+        name, solver = solver, SOLVERS[solver]()
+    elif isinstance(solver, dfx.AbstractSolver):
+        name = type(solver).__name__
+    else:
+        raise TypeError(f"solver={solver!r}; expected one of {', '.join(SOLVERS)} or a diffrax solver object.")
+    if isinstance(solver, dfx.AbstractFosterLangevinSRK):
+        raise ValueError(
+            f"solver={name}: a Langevin solver needs diffrax's underdamped-Langevin terms, not a general SDE; "
+            f"use one of {', '.join(SOLVERS)}, or e.g. diffrax.ShARK()."
+        )
+    srk = isinstance(solver, dfx.AbstractSRK)
+    additive_only = srk and solver.tableau.is_additive_noise()
+    if additive_only:
+        interpretation = "any"
+    elif isinstance(solver, dfx.AbstractItoSolver):
+        interpretation = "ito"
+    elif isinstance(solver, dfx.AbstractStratonovichSolver):
+        interpretation = "stratonovich"
+    else:
+        raise ValueError(
+            f"solver={name}: not an SDE solver (diffrax marks SDE solvers as Itô or Stratonovich); "
+            f"use one of {', '.join(SOLVERS)}, or e.g. diffrax.ShARK()."
+        )
+    if additive_only and not system.additive_noise:
+        raise ValueError(
+            f"solver={name} needs additive noise, but this system's diffusion depends on the state; "
+            "use 'euler', 'milstein', 'heun' or 'heun2'."
+        )
+    if not system.noise.continuous and not isinstance(solver, dfx.Euler):
+        raise ValueError(f"solver={name} does not apply to a system driven by jumps; use 'euler' (S0 §2, Remark).")
+    if isinstance(solver, ExponentialEuler) and solver.linear is None:
+        if system.linear_drift is None:
+            raise ValueError(
+                f"solver={name} needs the system's linear drift part (StochasticSystem.linear_drift); "
+                "this system does not declare one."
+            )
+        solver = ExponentialEuler(system.linear_drift)
+    embedded = srk and solver.tableau.b_error is not None
+    return SolverNeeds(solver, name, interpretation, additive_only, _levy_area(solver), embedded)

@@ -17,9 +17,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
-from .noise._brownian import AbstractDriver, Wiener
+from ._brownian import AbstractDriver, Wiener
 
-__all__ = ["ROLES", "StateLayout", "StochasticSystem"]
+__all__ = ["ROLES", "ItoStratonovichDrift", "StateLayout", "StochasticSystem"]
 
 ROLES = (
     "random_parameter",  # π of S0 (1.2): shaping-filter states of coloured noise
@@ -63,7 +63,7 @@ class StateLayout(eqx.Module):
 VectorField = Callable[[Float[Array, ""], Float[Array, " d"], PyTree], Array]
 
 
-class _ItoStratonovichDrift(eqx.Module):
+class ItoStratonovichDrift(eqx.Module):
     """``a ∓ ½ Σ_j (∂b_j/∂Z) b_j``: Itô → Stratonovich (sign −1) or back (+1)."""
 
     drift: VectorField
@@ -170,7 +170,7 @@ class StochasticSystem(eqx.Module):
         drift = self.drift_fn
         if not self.additive_noise:
             sign = -1.0 if interpretation == "stratonovich" else 1.0
-            drift = _ItoStratonovichDrift(self.drift_fn, self.diffusion_fn, sign)
+            drift = ItoStratonovichDrift(self.drift_fn, self.diffusion_fn, sign)
         return dataclasses.replace(self, drift_fn=drift, interpretation=interpretation)
 
     def replace_params(self, **changes) -> StochasticSystem:

@@ -14,10 +14,14 @@ import dataclasses
 import time
 from collections.abc import Callable, Sequence
 
+import diffrax as dfx
 import jax
 import numpy as np
 
-from ._simulate import SOLVERS, Ensemble, Save, simulate
+from ._ensemble import Ensemble, Save
+from ._options import FixedSteps
+from ._simulate import simulate
+from ._solvers import solver_needs
 from ._system import StochasticSystem
 
 __all__ = ["WorkPrecisionRow", "cheapest_setting", "work_precision"]
@@ -50,7 +54,7 @@ def work_precision(
     key,
     *,
     t1: float,
-    solvers: Sequence[str],
+    solvers: Sequence[str | dfx.AbstractSolver],
     dts: Sequence[float],
     statistic: Callable[[Ensemble], tuple],
     reference: float,
@@ -67,16 +71,22 @@ def work_precision(
     a reference solve at ``reference_dt`` (default ``min(dts)/16``) with SRA1
     for additive noise and Milstein otherwise, on the same Brownian path.
     """
-    unknown = [s for s in solvers if s not in SOLVERS]
-    if unknown:
-        raise ValueError(f"solvers: unknown {unknown}; allowed: {', '.join(SOLVERS)}.")
+    for solver in solvers:
+        solver_needs(solver, system)  # names a solver that cannot solve this system
     reference_dt = min(dts) / 16 if reference_dt is None else reference_dt
     ref_solver = "sra1" if system.additive_noise else "milstein"
     final = Save(n=2, paths=True)
 
     def endpoint(solver, dt):
         ens = simulate(
-            system, y0, key, n_paths=strong_paths, t1=t1, dt=dt, solver=solver, brownian_dt=reference_dt, save=final
+            system,
+            y0,
+            key,
+            n_paths=strong_paths,
+            t1=t1,
+            steps=FixedSteps(dt, brownian_dt=reference_dt),
+            solver=solver,
+            save=final,
         )
         return np.asarray(ens.paths[:, -1], np.float64)
 
@@ -95,7 +105,14 @@ def work_precision(
             peak = int(memory.temp_size_in_bytes + memory.output_size_in_bytes) if memory is not None else -1
             rows.append(
                 WorkPrecisionRow(
-                    solver, float(dt), strong, abs(float(value) - reference), float(se), seconds, peak, n_paths
+                    solver_needs(solver, system).name,
+                    float(dt),
+                    strong,
+                    abs(float(value) - reference),
+                    float(se),
+                    seconds,
+                    peak,
+                    n_paths,
                 )
             )
     return rows

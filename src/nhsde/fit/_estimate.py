@@ -28,6 +28,7 @@ import dataclasses
 import functools
 from collections.abc import Callable
 
+import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -35,7 +36,9 @@ import numpy as np
 import optax
 from jaxtyping import Array, PRNGKeyArray
 
-from .._simulate import Save, simulate
+from .._ensemble import Save
+from .._options import Batching, FixedSteps
+from .._simulate import simulate
 from .._system import StochasticSystem
 from ._observations import (
     Observations,
@@ -69,19 +72,26 @@ def _save_grid(ts, t0: float, model: str) -> np.ndarray:
     return index
 
 
+def _as_steps(steps):
+    return steps if isinstance(steps, FixedSteps) else FixedSteps(steps)
+
+
 class Simulated(AbstractStatisticsModel):
     """Statistics of ``n_paths`` paths of ``nhsde.simulate`` from ``y0`` with ``key``.
 
     The observation times must lie on an equally spaced grid ``t0 + j·h``; the
-    run saves on that grid and ``dt`` must divide ``h``.  Use a key other than the
+    run saves on that grid and the step must divide ``h``.  ``steps`` is a
+    :class:`~nhsde.FixedSteps` (or a number: its ``dt``); ``solver`` and
+    ``batching`` as in :func:`~nhsde.simulate`.  Use a key other than the
     data's: the model's Monte-Carlo noise then enters the reported errors.
     """
 
     y0: Array
     key: PRNGKeyArray
     n_paths: int = eqx.field(static=True)
-    dt: float = eqx.field(static=True)
-    solver: str = eqx.field(static=True, default="euler")
+    steps: FixedSteps = eqx.field(static=True, converter=_as_steps)
+    solver: str | dfx.AbstractSolver = eqx.field(static=True, default="euler")
+    batching: Batching | None = eqx.field(static=True, default=None)
     t0: float = eqx.field(static=True, default=0.0)
 
     def _run(self, system, ts, names, paths):
@@ -93,8 +103,9 @@ class Simulated(AbstractStatisticsModel):
             n_paths=self.n_paths,
             t0=self.t0,
             t1=float(ts[-1]),
-            dt=self.dt,
+            steps=self.steps,
             solver=self.solver,
+            batching=self.batching,
             save=Save(names=names, n=int(index[-1]) + 1, paths=paths),
         )
         return ens, index

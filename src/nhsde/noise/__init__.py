@@ -1,12 +1,7 @@
-"""Noise: drivers of the stochastic systems and their counter-based increments."""
+"""Noise beyond the Wiener process: jump drivers and their laws (S0 (1.3)–(1.4)), shaping filters for coloured
+noise (S0 (1.2))."""
 
-from ._brownian import (
-    BLOCK as BLOCK,
-    AbstractDriver as AbstractDriver,
-    StepIncrement as StepIncrement,
-    Wiener as Wiener,
-    block_keys as block_keys,
-)
+from .._brownian import AbstractDriver as AbstractDriver, Wiener as Wiener
 from ._filters import (
     AbstractShapingFilter as AbstractShapingFilter,
     FilteredParameters as FilteredParameters,
@@ -15,8 +10,6 @@ from ._filters import (
     with_shaping_filter as with_shaping_filter,
 )
 from ._levy import (
-    JUMP_STREAM as JUMP_STREAM,
-    TRUNCATION as TRUNCATION,
     AbstractJumpLaw as AbstractJumpLaw,
     CompoundPoisson as CompoundPoisson,
     Levy as Levy,

@@ -27,6 +27,7 @@ from equinox import AbstractVar
 from jaxtyping import Array, PyTree
 
 from .._params import AbstractParameters, parameter
+from .._system import ItoStratonovichDrift, StateLayout, StochasticSystem
 
 __all__ = ["AbstractShapingFilter", "FilteredParameters", "OrnsteinUhlenbeck", "ShapingFilter", "with_shaping_filter"]
 
@@ -166,9 +167,6 @@ def with_shaping_filter(system, filter: AbstractShapingFilter):
     The filter needs one output per noise channel of ``system``; the new system's
     noise (``system.noise``, Wiener or with jumps) drives the filter.
     """
-    # imported here: nhsde._system imports this package for its drivers
-    from .._system import StateLayout, StochasticSystem, _ItoStratonovichDrift
-
     if not isinstance(system, StochasticSystem):
         raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem.")
     if not isinstance(filter, AbstractShapingFilter):
@@ -184,7 +182,7 @@ def with_shaping_filter(system, filter: AbstractShapingFilter):
         raise ValueError(f"filter names {sorted(clash)} clash with the system's names.")
     drift = system.drift_fn
     if system.interpretation == "ito" and not system.additive_noise:
-        drift = _ItoStratonovichDrift(system.drift_fn, system.diffusion_fn, -1.0)
+        drift = ItoStratonovichDrift(system.drift_fn, system.diffusion_fn, -1.0)
     return StochasticSystem(
         drift_fn=_FilteredDrift(drift, system.diffusion_fn, k),
         diffusion_fn=_FilteredDiffusion(k, system.state_dim),

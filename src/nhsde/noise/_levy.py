@@ -33,8 +33,8 @@ import jax.numpy as jnp
 import jax.random as jr
 from jaxtyping import Array
 
+from .._brownian import BLOCK, AbstractDriver, Wiener
 from .._params import AbstractParameters, parameter, validated
-from ._brownian import BLOCK, AbstractDriver, Wiener
 
 __all__ = [
     "JUMP_STREAM",
@@ -219,6 +219,7 @@ class Levy(AbstractDriver):
             raise TypeError(f"jumps={self.jumps!r}; expected nhsde.noise.CompoundPoisson(intensity=…, law=…).")
 
     def variance_rate(self) -> Array:
+        """``1 + λ E[c²]`` per channel (1.4)."""
         return 1.0 + self.jumps.variance_rate()
 
     def block_increment(self, key, k0, dt, shape, substeps, levy_area):
@@ -227,17 +228,5 @@ class Levy(AbstractDriver):
 
 
 def driver_intensity(driver: AbstractDriver, noise_dim: int, dtype=None) -> Array:
-    """Intensity ``ν`` of the driving process per channel, S0 (1.4): ``(noise_dim,)``.
-
-    Wiener: 1; :class:`CompoundPoisson`: ``λ E[c²]``; :class:`Levy`: ``1 + λ E[c²]``.
-    """
-    dtype = jnp.result_type(float) if dtype is None else dtype
-    if isinstance(driver, Wiener):
-        rate = jnp.ones((), dtype)
-    elif isinstance(driver, (CompoundPoisson, Levy)):
-        rate = driver.variance_rate().astype(dtype)
-    else:
-        raise TypeError(
-            f"driver {type(driver).__name__} declares no intensity; nhsde knows Wiener, CompoundPoisson, Levy."
-        )
-    return jnp.broadcast_to(rate, (noise_dim,))
+    """Intensity ``ν`` of the driving process per channel, S0 (1.4): ``(noise_dim,)`` (the driver's own)."""
+    return driver.noise_intensity(noise_dim, jnp.result_type(float) if dtype is None else dtype)

@@ -26,7 +26,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.random as jr
-from jaxtyping import PRNGKeyArray, PyTree
+from jaxtyping import Array, PRNGKeyArray, PyTree
 
 __all__ = ["BLOCK", "AbstractDriver", "StepIncrement", "Wiener", "block_keys"]
 
@@ -46,10 +46,20 @@ class AbstractDriver(eqx.Module):
     fixed step ``k0`` (``substeps`` base steps of length ``dt``) from the block
     key and the step counter.  Its parameters (jump intensities, …) are pytree
     leaves.  ``continuous`` is False for drivers with jumps, for which only
-    Euler–Maruyama applies (S0 §2, Remark: the Stratonovich shortcut fails).
+    Euler–Maruyama applies (S0 §2, Remark: the Stratonovich shortcut fails);
+    Wiener is the one continuous driver.  ``variance_rate`` is ``ν`` of S0 (1.4)
+    per channel, ``E[dW dWᵀ] = diag(ν) dt``.
     """
 
     continuous: eqx.AbstractClassVar[bool]
+
+    @abc.abstractmethod
+    def variance_rate(self) -> Array:
+        """``ν`` of S0 (1.4): a scalar or one value per channel."""
+
+    def noise_intensity(self, noise_dim: int, dtype) -> Array:
+        """``ν`` per channel, shape ``(noise_dim,)``, in ``dtype``."""
+        return jnp.broadcast_to(jnp.asarray(self.variance_rate()).astype(dtype), (noise_dim,))
 
     @abc.abstractmethod
     def block_increment(self, key, k0, dt, shape, substeps, levy_area) -> PyTree:
@@ -64,6 +74,9 @@ class Wiener(AbstractDriver):
     """Standard Wiener process: S0's normal stochastic systems."""
 
     continuous: ClassVar[bool] = True
+
+    def variance_rate(self):
+        return jnp.ones(())
 
     def block_increment(self, key, k0, dt, shape, substeps, levy_area):
         n = 2 if levy_area is dfx.SpaceTimeLevyArea else 1

@@ -1,0 +1,226 @@
+"""What :func:`~nhsde.simulate` keeps and returns: ``Save``, ``Ensemble``, and the one moment reducer.
+
+Paths are reduced block by block (``BLOCK`` paths each) to sums of the first
+four powers of their saved values about a shift, and the blocks are added one
+after another in path order, so every addition happens in the same order for
+any chunk size, device count or piece of a run file: the statistics are bitwise
+independent of all three.  Standard errors follow exactly from the same sums
+(third- and fourth-order sums give the variance of the covariance estimate).
+"""
+
+# No ``from __future__ import annotations``: equinox reads AbstractVar annotations, which must not be strings.
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from equinox import AbstractVar
+from jaxtyping import Array, Bool, Float, Int
+
+from ._brownian import BLOCK
+from ._misc import check_number
+
+__all__ = ["AbstractMoments", "Ensemble", "MomentSums", "Save", "SimulationError"]
+
+
+class SimulationError(RuntimeError):
+    """Paths failed (non-finite state or a solver error code) and ``on_failure='raise'``."""
+
+
+def _tuple_of_names(names):
+    return tuple(names) if isinstance(names, list) else names
+
+
+class Save(eqx.Module):
+    """What ``simulate`` keeps: which components, at how many times, per path or not.
+
+    - ``names``: state components or system observables (a tuple of names);
+      ``None`` = the whole state.
+    - ``n``: number of equally spaced save times from ``t0`` to ``t1`` inclusive;
+      ``n − 1`` must divide the number of steps (``None``: the largest such ``n ≤ 11``).
+    - ``paths``: also keep the per-path values, ``(n_paths, n, k)``.
+    - ``about``: the point ``(n, k)`` the moment sums are taken about (default:
+      the first path's values); pass an earlier piece's ``Ensemble.sums.shift``
+      so that the sums of several pieces add exactly.
+    """
+
+    names: tuple[str, ...] | None = eqx.field(default=None, converter=_tuple_of_names)
+    n: int | None = None
+    paths: bool = False
+    about: Array | None = None
+
+    def __check_init__(self):
+        if self.names is not None:
+            if not isinstance(self.names, tuple):
+                raise TypeError(f"Save(names={self.names!r}); expected a tuple of names, e.g. ('x', 'y').")
+            if not self.names:
+                raise ValueError("Save(names=()); name at least one quantity, or None for the whole state.")
+            if not all(isinstance(n, str) for n in self.names):
+                raise TypeError(f"Save(names={self.names!r}); every name must be a string.")
+        if self.n is not None and check_number("Save.n", self.n, integer=True) < 2:
+            raise ValueError(f"Save(n={self.n}); must be ≥ 2 (the start and the end at least).")
+        if not isinstance(self.paths, (bool, np.bool_)):
+            raise TypeError(f"Save(paths={self.paths!r}); expected True or False.")
+
+
+def _safe_sqrt(v):
+    pos = v > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, v, 1.0)), 0.0)
+
+
+def _central_product_moment(a, m2, m3, m4):
+    """``E[(z_i − a_i)² (z_j − a_j)²]`` from moments about the shift.
+
+    ``a = E z``, ``m2_ij = E z_i z_j``, ``m3_ij = E z_i z_j²``, ``m4_ij = E z_i² z_j²``;
+    the variance of the product of the centred components is this minus ``cov²``.
+    """
+    ai, aj = a[:, :, None], a[:, None, :]
+    d = jnp.diagonal(m2, axis1=1, axis2=2)
+    return (
+        m4
+        - 2 * ai * m3
+        - 2 * aj * jnp.swapaxes(m3, 1, 2)
+        + aj**2 * d[:, :, None]
+        + ai**2 * d[:, None, :]
+        + 4 * ai * aj * m2
+        - 3 * ai**2 * aj**2
+    )
+
+
+class MomentSums(eqx.Module):
+    """Sums over valid paths of ``z``, ``z zᵀ``, ``z_i z_j²``, ``z_i² z_j²`` with ``z = x − shift``, and their count.
+
+    The one reducer of path values to statistics, used by ``simulate`` (one chunk,
+    one device or many) and by run files (piece by piece).
+    """
+
+    shift: Float[Array, "n k"]
+    s1: Float[Array, "n k"]
+    s2: Float[Array, "n k k"]
+    s3: Float[Array, "n k k"]
+    s4: Float[Array, "n k k"]
+    count: Int[Array, ""]
+
+    @classmethod
+    def zeros(cls, shift) -> "MomentSums":
+        n, k = shift.shape
+        z2 = jnp.zeros((n, k, k), shift.dtype)
+        return cls(shift, jnp.zeros((n, k), shift.dtype), z2, z2, z2, jnp.zeros((), jnp.int32))
+
+    def add(self, other: "MomentSums") -> "MomentSums":
+        """The sums of both sets of paths (same shift)."""
+        return dataclasses.replace(
+            self,
+            s1=self.s1 + other.s1,
+            s2=self.s2 + other.s2,
+            s3=self.s3 + other.s3,
+            s4=self.s4 + other.s4,
+            count=self.count + other.count,
+        )
+
+    def block_sums(self, obs: Float[Array, "p n k"], valid: Bool[Array, " p"]):
+        """The sums of each block of ``BLOCK`` paths of ``obs`` (stacked); invalid paths add nothing.
+
+        Every block is reduced by the same fixed-shape loop body, so a block's sums
+        do not depend on which chunk or device it ran in.
+        """
+
+        def one(_, block):
+            obs_b, valid_b = block
+            z = jnp.where(valid_b[:, None, None], obs_b - self.shift, 0.0)
+            zz = jnp.einsum("cni,cnj->cnij", z, z)
+            z_zz = jnp.einsum("cni,cnj->cnij", z, z * z)
+            sums = (jnp.sum(z, 0), jnp.sum(zz, 0), jnp.sum(z_zz, 0), jnp.sum(zz * zz, 0))
+            return None, (*sums, jnp.sum(valid_b, dtype=jnp.int32))
+
+        blocks = (obs.reshape(-1, BLOCK, *obs.shape[1:]), valid.reshape(-1, BLOCK))
+        return jax.lax.scan(one, None, blocks)[1]
+
+    def add_blocks(self, block_sums) -> "MomentSums":
+        """Add stacked block sums one after another, in path order."""
+
+        def add(acc, block):
+            s1, s2, s3, s4, count = block
+            return acc.add(dataclasses.replace(acc, s1=s1, s2=s2, s3=s3, s4=s4, count=count)), None
+
+        return jax.lax.scan(add, self, block_sums)[0]
+
+    def add_paths(self, obs: Float[Array, "p n k"], valid: Bool[Array, " p"]) -> "MomentSums":
+        """Add paths ``obs`` (a multiple of ``BLOCK``) block by block, in path order."""
+        return self.add_blocks(self.block_sums(obs, valid))
+
+    def statistics(self):
+        """``(mean, cov, mean_se, cov_se)``: sample mean, unbiased covariance and their Monte-Carlo errors."""
+        nf = self.count.astype(self.s1.dtype)
+        mean = self.shift + self.s1 / nf
+        cov = (self.s2 - jnp.einsum("ni,nj->nij", self.s1, self.s1) / nf) / jnp.maximum(nf - 1, 1)
+        mean_se = _safe_sqrt(jnp.diagonal(cov, axis1=1, axis2=2) / nf)
+        fourth = _central_product_moment(self.s1 / nf, self.s2 / nf, self.s3 / nf, self.s4 / nf)
+        cov_se = _safe_sqrt((fourth - cov**2) / nf)
+        return mean, cov, mean_se, cov_se
+
+
+class AbstractMoments(eqx.Module):
+    """Means and covariances of named quantities at times ``ts``: what the statistics consume.
+
+    Monte Carlo (:class:`Ensemble`) carries standard errors; approximations
+    (the moment equations) carry none (``standard_errors`` returns ``None``).
+    """
+
+    ts: AbstractVar[Float[Array, " n"]]
+    mean: AbstractVar[Float[Array, "n k"]]
+    cov: AbstractVar[Float[Array, "n k k"]]
+    names: AbstractVar[tuple[str, ...]]
+    roles: AbstractVar[tuple[str, ...]]
+
+    def standard_errors(self) -> tuple[Array, Array] | None:
+        """``(mean_se, cov_se)``, or ``None`` where the moments carry no Monte-Carlo error."""
+        return None
+
+    def select(self, names: tuple[str, ...]):
+        """``(mean, cov, mean_se, cov_se)`` restricted to ``names`` (the errors ``None`` when there are none)."""
+        idx = []
+        for n in names:
+            if n not in self.names:
+                raise ValueError(f"{n!r} was not saved; saved: {self.names}.")
+            idx.append(self.names.index(n))
+        idx = np.asarray(idx)
+        ix = np.ix_(idx, idx)
+        errors = self.standard_errors()
+        mean_se, cov_se = (None, None) if errors is None else (errors[0][:, idx], errors[1][:, ix[0], ix[1]])
+        return self.mean[:, idx], self.cov[:, ix[0], ix[1]], mean_se, cov_se
+
+
+class Ensemble(AbstractMoments):
+    """Result of :func:`~nhsde.simulate`: moments of the saved quantities over the paths.
+
+    ``mean[i]``, ``cov[i]`` are the sample mean and (unbiased) covariance over the
+    paths that did not fail, at ``ts[i]``; ``mean_se``, ``cov_se`` their
+    Monte-Carlo standard errors; ``sums`` the moment sums they come from.
+    ``failed[p]`` marks path ``p`` (non-finite state, a solver error code, or
+    saved values whose fourth power overflows the precision); failed paths never
+    enter a statistic.
+    """
+
+    ts: Float[Array, " n"]
+    mean: Float[Array, "n k"]
+    cov: Float[Array, "n k k"]
+    mean_se: Float[Array, "n k"]
+    cov_se: Float[Array, "n k k"]
+    n_used: Int[Array, ""]
+    failed: Bool[Array, " paths"]
+    paths: Float[Array, "paths n k"] | None
+    sums: MomentSums
+    names: tuple[str, ...] = eqx.field(static=True)
+    roles: tuple[str, ...] = eqx.field(static=True)
+    solver: str = eqx.field(static=True)
+    dt: float = eqx.field(static=True)
+
+    @property
+    def n_failed(self):
+        return jnp.sum(self.failed)
+
+    def standard_errors(self):
+        return self.mean_se, self.cov_se

@@ -1,0 +1,109 @@
+"""Option objects of :func:`~nhsde.simulate`, each checking itself (diffrax's ``SaveAt``/``StepTo`` manner).
+
+- :class:`FixedSteps` / :class:`AdaptiveSteps`: how time is stepped;
+- :class:`Batching`: how paths are grouped into chunks, spread over devices and
+  differentiated (reverse-mode checkpointing).
+"""
+
+# No ``from __future__ import annotations``: equinox reads AbstractVar annotations, which must not be strings.
+
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import numpy as np
+
+from ._brownian import BLOCK
+from ._misc import check_number
+
+__all__ = ["AbstractSteps", "AdaptiveSteps", "Batching", "FixedSteps"]
+
+
+class AbstractSteps(eqx.Module):
+    """How ``simulate`` steps in time: :class:`FixedSteps` or :class:`AdaptiveSteps`."""
+
+    dt: eqx.AbstractVar[float]
+    max_steps: eqx.AbstractVar[int]
+
+
+class FixedSteps(AbstractSteps):
+    """Steps of ``dt`` on the counter-based Brownian path (``dt`` must divide ``t1 − t0``).
+
+    - ``brownian_dt``: base step of the Brownian path (divides ``dt``); solves with
+      different ``dt`` and the same ``brownian_dt`` and key share one path.
+    - ``max_steps``: the step budget per path; a longer run is refused naming the
+      count (raise it to run longer).
+    """
+
+    dt: float
+    brownian_dt: float | None = None
+    max_steps: int = 10_000_000
+
+    def __check_init__(self):
+        check_number("dt", self.dt, positive=True)
+        if self.brownian_dt is not None:
+            check_number("brownian_dt", self.brownian_dt, positive=True)
+        if check_number("max_steps", self.max_steps, integer=True) < 1:
+            raise ValueError(f"max_steps={self.max_steps}; must be ≥ 1.")
+
+
+class AdaptiveSteps(AbstractSteps):
+    """Adaptive steps: ``diffeqsolve`` with a PID controller on a ``VirtualBrownianTree`` per path.
+
+    ``dt`` is the first step; ``rtol``/``atol`` the controller's tolerances; at
+    most ``max_steps`` steps per path (a path that needs more counts as failed).
+    The error estimate is the solver's own where a stochastic Runge–Kutta
+    tableau embeds one, else step doubling (``diffrax.HalfSolver``).
+    """
+
+    dt: float
+    rtol: float = 1e-3
+    atol: float = 1e-3
+    max_steps: int = 100_000
+
+    def __check_init__(self):
+        for name in ("dt", "rtol", "atol"):
+            check_number(name, getattr(self, name), positive=True)
+        if check_number("max_steps", self.max_steps, integer=True) < 1:
+            raise ValueError(f"max_steps={self.max_steps}; must be ≥ 1.")
+
+
+def _devices(devices):
+    return tuple(devices) if isinstance(devices, (list, tuple)) else devices
+
+
+class Batching(eqx.Module):
+    """How the paths are grouped, spread and differentiated.
+
+    - ``chunk_size``: paths per chunk (a multiple of 64; default: all paths up to
+      8192); memory scales with it, not with ``n_paths``.
+    - ``devices``: the devices to shard chunks over (default: all of
+      ``jax.devices()``); one chunk per device at a time, statistics bitwise the
+      same as on one device.
+    - ``checkpoint``: in reverse mode, ``True`` recomputes each save interval
+      instead of storing every step (memory ∝ steps per save interval, about one
+      extra forward pass); ``False`` stores every step (faster, memory ∝ steps ×
+      chunk); ``None`` stores while the estimated residuals (≈ 10 × steps per
+      interval × chunk × state size × bytes) stay under 1 GiB.
+    """
+
+    chunk_size: int | None = None
+    devices: Sequence[jax.Device] | None = eqx.field(default=None, converter=_devices)
+    checkpoint: bool | None = None
+
+    def __check_init__(self):
+        if self.chunk_size is not None:
+            chunk = check_number("chunk_size", self.chunk_size, integer=True)
+            if chunk < BLOCK or chunk % BLOCK:
+                raise ValueError(f"chunk_size={self.chunk_size}; must be a positive multiple of {BLOCK}.")
+        if self.devices is not None:
+            if not isinstance(self.devices, tuple):
+                raise TypeError(f"devices={self.devices!r}; expected a list of JAX devices, e.g. jax.devices()[:2].")
+            if not self.devices:
+                raise ValueError("devices is empty; pass None for all devices or a list of JAX devices.")
+            if not all(isinstance(d, jax.Device) for d in self.devices):
+                raise TypeError(f"devices={self.devices!r}; every entry must be a JAX device.")
+            if len(set(self.devices)) != len(self.devices):
+                raise ValueError(f"devices={self.devices!r} lists a device twice; each device takes one chunk.")
+        if self.checkpoint is not None and not isinstance(self.checkpoint, (bool, np.bool_)):
+            raise TypeError(f"checkpoint={self.checkpoint!r}; expected True, False or None.")
