@@ -49,8 +49,7 @@ def statistic(steps, paths, checkpoint):
             t1=steps * 0.01,
             dt=0.01,
             save=nhsde.Save(names=("x",), n=11),
-            checkpoint=checkpoint,
-            chunk_size=min(paths, 4096),
+            batching=nhsde.Batching(chunk_size=min(paths, 4096), checkpoint=checkpoint),
         )
         return ens.cov[-1, 0, 0]
 

@@ -27,7 +27,7 @@ paths = int(sys.argv[1])
 scene = BallOnVibratingPlane()
 def run(devices):
     return nhsde.simulate(scene.build(), scene.initial_state(), jax.random.key(0), n_paths=paths, t1=10.0, dt=0.01,
-                          chunk_size=4096, devices=devices)
+                          batching=nhsde.Batching(chunk_size=4096, devices=devices))
 rows, ref = [], None
 n = 1
 while n <= len(jax.devices()):

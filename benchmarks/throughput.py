@@ -64,7 +64,7 @@ import numpy as np
 
 import nhsde
 from nhsde.scenes import BallOnVibratingPlane, ChaplyginBall, ChaplyginSleigh
-from nhsde.scenes._ball import ball_covariances
+from nhsde.scenes import ball_covariances
 
 DT = 0.01
 DTYPE = jnp.float32

@@ -37,7 +37,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import nhsde  # noqa: E402
-from nhsde._work_precision import cheapest_setting, work_precision  # noqa: E402
+from nhsde import cheapest_setting, work_precision  # noqa: E402
 from nhsde.scenes import (  # noqa: E402
     BallOnVibratingPlane,
     ChaplyginBall,

@@ -1,10 +1,12 @@
 # ---
 # jupyter:
 #   jupytext:
+#     formats: ipynb,py:percent
 #     text_representation:
 #       extension: .py
 #       format_name: percent
 #       format_version: '1.3'
+#       jupytext_version: 1.19.6
 #   kernelspec:
 #     display_name: Python 3
 #     language: python
@@ -50,7 +52,7 @@ import numpy as np
 
 import nhsde
 from nhsde import plot
-from nhsde._work_precision import cheapest_setting, work_precision
+from nhsde import cheapest_setting, work_precision
 from nhsde.scenes import BallOnVibratingPlane, ChaplyginSleigh, ball_covariances
 
 T_START = time.perf_counter()
