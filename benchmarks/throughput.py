@@ -63,8 +63,7 @@ import jax.random as jr
 import numpy as np
 
 import nhsde
-from nhsde.scenes import BallOnVibratingPlane, ChaplyginBall, ChaplyginSleigh
-from nhsde.scenes import ball_covariances
+from nhsde.scenes import BallOnVibratingPlane, ChaplyginBall, ChaplyginSleigh, ball_covariances
 
 DT = 0.01
 DTYPE = jnp.float32

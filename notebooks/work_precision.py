@@ -51,8 +51,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 import nhsde
-from nhsde import plot
-from nhsde import cheapest_setting, work_precision
+from nhsde import cheapest_setting, plot, work_precision
 from nhsde.scenes import BallOnVibratingPlane, ChaplyginSleigh, ball_covariances
 
 T_START = time.perf_counter()

@@ -403,7 +403,14 @@ def test_multiplicative_noise_monte_carlo_with_richardson_against_the_exact_exit
     h = 0.02
     fine, coarse = (
         residence_time(
-            system, z0, jax.random.key(5), component="x", radius=1.0, n_paths=4096, t1=12.0, dt=step, brownian_dt=h
+            system,
+            z0,
+            jax.random.key(5),
+            component="x",
+            radius=1.0,
+            n_paths=4096,
+            t1=12.0,
+            steps=nhsde.FixedSteps(step, brownian_dt=h),
         )
         for step in (h, 2 * h)
     )

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from nhsde._params import parameter
+from nhsde import parameter
 from nhsde.analysis import (
     chaplygin_system,
     delta_matrix,
@@ -35,9 +35,7 @@ from nhsde.analysis import (
     steady_stability,
 )
 from nhsde.mechanics import MechanicalSpec
-from nhsde.scenes import ChaplyginSleighFromSpec, RollingDisk
-from nhsde.scenes._rolling_disk import rolling_disk_kinematics
-from nhsde.scenes._sleigh import SleighParameters
+from nhsde.scenes import ChaplyginSleighFromSpec, RollingDisk, SleighParameters, rolling_disk_kinematics
 
 M, I, A_OFF = 2.0, 0.7, 0.4
 J = I + M * A_OFF**2

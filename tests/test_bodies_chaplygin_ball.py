@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import nhsde
-from nhsde._cli import main
+from nhsde.runs import main
 from nhsde.scenes import SCENES, ChaplyginBall
 
 

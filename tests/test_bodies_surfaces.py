@@ -7,10 +7,9 @@ import pytest
 
 import nhsde.analysis as A
 import nhsde.bodies as B
-from nhsde.bodies._surfaces import fibonacci_directions
 from nhsde.scenes import BodyOnVibratingPlane, RollingBody, stationary_nutation_density
 
-DIRECTIONS = jnp.asarray(fibonacci_directions(64))
+DIRECTIONS = jnp.asarray(B.fibonacci_directions(64))
 
 SURFACES = {
     "sphere": B.Sphere(radius=1.3, offset=(0.1, -0.2, 0.3)),

@@ -13,7 +13,6 @@ from scipy import stats
 import nhsde
 import nhsde.analysis as A
 import nhsde.bodies as B
-from nhsde.analysis._liouville import FAST_COMPILE
 from nhsde.scenes import (
     BodyOnVibratingPlane,
     RollingBody,
@@ -69,6 +68,9 @@ def random_states(n, key=0):
     return jnp.concatenate(
         [jax.random.normal(kw, (n, 3), jnp.float64), g / jnp.linalg.norm(g, axis=1, keepdims=True)], 1
     )
+
+
+FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}  # runs once
 
 
 @partial(jax.jit, static_argnums=0, compiler_options=FAST_COMPILE)

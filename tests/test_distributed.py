@@ -37,7 +37,7 @@ blow_up = StochasticSystem(
     additive_noise=True,
 )
 ens = nhsde.simulate(blow_up, jnp.array([0.5]), jax.random.key(1), n_paths=256, t1=1.0, dt=0.01,
-                     batching=nhsde.Batching(chunk_size=64), on_failure="exclude")
+                     batching=nhsde.Batching(chunk_size=64), on_failure="exclude", save=nhsde.Save(paths=True))
 (mean, cov), (d_mean, d_cov) = ball_k(1.0, 1.0), jax.jacfwd(ball_k, argnums=(0, 1))(1.0, 1.0)
 hexes = lambda a: [float(x).hex() for x in np.ravel(np.asarray(a))]
 print(json.dumps(dict(

@@ -59,7 +59,14 @@ def test_unknown_parameter_is_refused():
 @pytest.mark.parametrize(
     "kw, exc, match",
     [
-        (dict(n_paths=0), ValueError, r"n_paths=0; must be ≥ 1"),
+        (dict(n_paths=0), ValueError, r"n_paths=0; must be ≥ 4"),
+        (dict(n_paths=2), ValueError, r"n_paths=2; must be ≥ 4 \(a covariance and its standard error need 4\)"),
+        (dict(n_paths=2**31), ValueError, r"first_path \+ n_paths = 2147483648 exceeds 2147483647"),
+        (dict(first_path=2**38), ValueError, r"first_path \+ n_paths = .* exceeds 2147483647"),
+        (dict(n_paths=True), TypeError, r"n_paths=True; expected a number"),
+        (dict(dt=1e-9), ValueError, r"dt=1e-09 makes 1000000000 steps .* max_steps=10000000"),
+        (dict(y0=jnp.zeros(4, jnp.float16)), TypeError, r"y0 has dtype float16"),
+        (dict(y0=jnp.zeros(4, jnp.bfloat16)), TypeError, r"y0 has dtype bfloat16"),
         (dict(n_paths=2.5), ValueError, r"n_paths=2.5; must be a whole number"),
         (dict(dt=0.0), ValueError, r"dt=0.0; must be > 0"),
         (dict(dt=-0.1), ValueError, r"dt=-0.1; must be > 0"),
@@ -70,8 +77,8 @@ def test_unknown_parameter_is_refused():
         (dict(y0=jnp.zeros(3)), ValueError, r"y0 has shape \(3,\); expected \(4,\) or \(64, 4\)"),
         (dict(y0=jnp.array([0.0, jnp.nan, 0, 0])), ValueError, r"y0 contains non-finite"),
         (dict(solver="rk4"), ValueError, r"solver='rk4'; allowed: euler, milstein, heun, heun2, sra1, exponential"),
-        (dict(solver=diffrax.Tsit5()), ValueError, r"solver=Tsit5: not an SDE solver"),
-        (dict(solver=diffrax.ShOULD(0.01)), ValueError, r"solver=ShOULD: a Langevin solver"),
+        (dict(solver=diffrax.Tsit5()), ValueError, r"solver='Tsit5': not an SDE solver"),
+        (dict(solver=diffrax.ShOULD(0.01)), ValueError, r"solver='ShOULD': a Langevin solver"),
         (dict(solver=3), TypeError, r"solver=3; expected one of"),
         (dict(batching=nhsde.Batching), TypeError, r"expected nhsde.Batching"),
         (dict(steps=0.1, dt=None), TypeError, r"expected nhsde.FixedSteps"),
@@ -155,7 +162,8 @@ def test_failed_paths_are_excluded_and_counted():
     failed = np.asarray(ens.failed)
     assert 0 < failed.sum() < 512
     assert int(ens.n_used) + failed.sum() == 512
-    assert not np.all(np.isfinite(np.asarray(ens.paths)[failed]).all(axis=(1, 2)))
+    # a failed path keeps its last finite state (so reverse-mode gradients stay finite), and is left out
+    assert np.all(np.isfinite(np.asarray(ens.paths)))
     good = np.asarray(ens.paths, np.float64)[~failed]
     assert np.all(np.isfinite(ens.mean)) and np.all(np.isfinite(ens.cov))
     np.testing.assert_allclose(ens.mean[:, 0], good[:, :, 0].mean(0), rtol=1e-4)
@@ -167,3 +175,120 @@ def test_failure_inside_a_transformation_is_an_error():
 
     with pytest.raises((eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError), match="some paths failed"):
         jax.jit(f)(jnp.float32(1.0))
+
+
+def test_euler_beyond_its_stability_limit_is_refused_before_the_run():
+    """The ball at ε·dt = 1.05 used to return k_uu = 4.8e7 (exact 0.0122) with 0 failed paths."""
+    scene = BallOnVibratingPlane(eps=10.5, nu=1.0, drift=False)
+    with pytest.raises(ValueError, match=r"dt=0.1: solver 'euler' is unstable .* solver='exponential'"):
+        nhsde.simulate(scene.build(), scene.initial_state(), KEY, n_paths=64, t1=1.0, dt=0.1)
+    # at ε·dt = 0.945 it runs, and the exponential solver runs at any step
+    nhsde.simulate(scene.build(), scene.initial_state(), KEY, n_paths=64, t1=0.9, dt=0.09)
+    nhsde.simulate(scene.build(), scene.initial_state(), KEY, n_paths=64, t1=1.0, dt=0.1, solver="exponential")
+
+
+@pytest.mark.parametrize("on_failure", ["raise", "exclude"])
+def test_an_ensemble_without_enough_successful_paths_raises_in_every_mode(on_failure):
+    """All paths failed used to give NaN statistics without an error under on_failure='exclude'."""
+
+    def doomed():  # dy = y³ dt from y0 = 10 blows up at t = 0.005
+        return StochasticSystem(
+            drift_fn=lambda t, y, p: y**3,
+            diffusion_fn=lambda t, y, p: p * jnp.ones((1, 1), y.dtype),
+            params=jnp.float32(1e-3),
+            layout=StateLayout(("y",), ("independent_coordinate",)),
+            noise_dim=1,
+            additive_noise=True,
+        )
+
+    with pytest.raises(nhsde.SimulationError, match="paths"):
+        sim(system=doomed(), y0=jnp.full(1, 10.0, jnp.float32), n_paths=64, t1=1.0, dt=0.01, on_failure=on_failure)
+    with pytest.raises((eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError), match="fewer than 4 paths"):
+        jax.jit(
+            lambda s: (
+                sim(
+                    system=doomed(),
+                    y0=jnp.full(1, 10.0, jnp.float32) * s,
+                    n_paths=64,
+                    t1=1.0,
+                    dt=0.01,
+                    on_failure="exclude",
+                ).mean
+            )
+        )(jnp.float32(1.0))
+
+
+def test_reverse_mode_with_excluded_paths_equals_forward_mode():
+    """Reverse-mode gradients used to be NaN once any path was excluded, while forward mode was finite."""
+
+    def mean_y(scale):
+        system = explosive()
+        system = StochasticSystem(
+            drift_fn=lambda t, y, p: y**2,
+            diffusion_fn=lambda t, y, p: p * jnp.ones((1, 1), y.dtype),
+            params=scale,
+            layout=system.layout,
+            noise_dim=1,
+            additive_noise=True,
+        )
+        ens = sim(system=system, y0=jnp.ones(1, jnp.float64), n_paths=256, t1=1.0, dt=0.01, on_failure="exclude")
+        return ens.mean[-1, 0]
+
+    scale = jnp.float64(1.0)
+    forward, reverse = jax.jacfwd(mean_y)(scale), jax.grad(mean_y)(scale)
+    assert np.isfinite(forward)
+    np.testing.assert_allclose(reverse, forward, rtol=1e-10)
+
+
+@pytest.mark.parametrize(
+    "params, exc, match",
+    [
+        (dict(eps=[0.5, 2.0]), ValueError, r"parameter eps has shape \(2,\); eps is one number"),
+        (dict(eps=True), TypeError, r"parameter eps=True; expected a real number"),
+        (dict(nu="1"), TypeError, r"parameter nu='1'; expected a real number"),
+        (dict(eps=None), TypeError, r"parameter eps=None; expected a real number"),
+    ],
+)
+def test_parameters_of_the_wrong_kind_are_refused(params, exc, match):
+    with pytest.raises(exc, match=match):
+        BallOnVibratingPlane(**params)
+
+
+def test_parameter_ranges_are_checked_in_the_state_precision():
+    """radius = 1e-50 is 0 in float32: the error names the radius, not the state."""
+    scene = BallOnVibratingPlane(radius=1e-50)
+    with pytest.raises(ValueError, match=r"parameter radius=0.0 is not allowed; radius must be finite and > 0"):
+        nhsde.simulate(scene.build(), scene.initial_state().astype(jnp.float32), KEY, n_paths=64, t1=1.0, dt=0.1)
+
+
+def test_float32_time_keeps_its_step_at_large_t0():
+    """At t0 = 1e5 float32 rounds t + dt − t to 0.0078 or 0.0156: the solver now steps over (0, dt) exactly."""
+    scene = BallOnVibratingPlane(eps=1.0, nu=1.0, drift=False)
+    ens = nhsde.simulate(
+        scene.build(), scene.initial_state().astype(jnp.float32), KEY, n_paths=4096, t0=1e5, t1=1e5 + 8.0, dt=0.01
+    )
+    exact = (1 / 1.4) ** 2 / (4 * (1 - 1.0 * 0.01))  # Euler's own stationary k_uu
+    assert abs(float(ens.cov[-1, 0, 0]) - exact) <= 4 * float(ens.cov_se[-1, 0, 0])
+
+
+def test_memory_does_not_grow_with_paths():
+    """2¹² chunks of 128 paths need no more temporaries than 2⁴ chunks, to less than one bit per extra path
+    (they used to hold the initial states and a failure flag per path: 17–33 bytes)."""
+    system, y0 = BALL.build(), BALL.initial_state()
+
+    def temp_bytes(n_paths):
+        def run(y):
+            return nhsde.simulate(
+                system, y, KEY, n_paths=n_paths, t1=1.0, dt=0.1, batching=nhsde.Batching(128, jax.devices()[:1])
+            ).mean
+
+        return jax.jit(run).lower(y0).compile().memory_analysis().temp_size_in_bytes
+
+    small, large = temp_bytes(128 * 2**4), temp_bytes(128 * 2**12)
+    assert large <= small + 128 * (2**12 - 2**4) // 8, (small, large)
+
+
+def test_chunks_larger_than_the_paths_simulate_no_padding():
+    small = sim(batching=nhsde.Batching(chunk_size=64))
+    huge = sim(batching=nhsde.Batching(chunk_size=2**20))
+    assert np.array_equal(small.cov, huge.cov) and int(huge.n_used) + int(huge.n_failed) == 64

@@ -16,8 +16,7 @@ import pytest
 import xarray as xr
 
 import nhsde
-from nhsde._cli import main
-from nhsde._runs import ConfigError, RunConfig, load_config, load_run, run
+from nhsde.runs import ConfigError, RunConfig, load_config, load_run, main, run
 
 BASE = {
     "scene": "ball-on-vibrating-plane",
@@ -236,7 +235,7 @@ def test_killed_process_resumes(tmp_path):
     cfg.write_text(BASE_TOML.replace("n = 300", "n = 640"))
     out = tmp_path / "run.nc"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "nhsde._cli", "simulate", "--config", str(cfg), "--no-progress"],
+        [sys.executable, "-m", "nhsde.runs", "simulate", "--config", str(cfg), "--no-progress"],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
@@ -307,13 +306,14 @@ def test_run_needs_x64_for_its_sums(tmp_path):
         run(RunConfig.from_dict(BASE), tmp_path / "run.nc")
 
 
-def test_the_example_in_the_help_is_a_valid_run_file():
+def test_the_example_in_the_help_is_a_valid_run_file(capsys):
     import textwrap
     import tomllib
 
-    from nhsde._cli import RUN_EXAMPLE
-
-    body = RUN_EXAMPLE.split("\n\n", 1)[1].rsplit("\n\n", 1)[0]
+    with pytest.raises(SystemExit):
+        main(["simulate", "--help"])
+    example = capsys.readouterr().out.split("a run file (TOML", 1)[1]
+    body = example.split("\n\n", 1)[1].rsplit("\n\n", 1)[0]
     config = RunConfig.from_dict(tomllib.loads(textwrap.dedent(body)))
     assert config.data["solver"]["name"] == "sra1" and config.data["statistics"]["save"] == ["x", "y"]
 
@@ -339,3 +339,32 @@ def test_float32_run_keeps_float64_sums(tmp_path):
     np.testing.assert_array_equal(single["paths"].values, ens.paths)
     for name in ("mean", "cov"):
         np.testing.assert_allclose(single[name].values, getattr(ens, name), rtol=1e-5, atol=1e-6, err_msg=name)
+
+
+def test_cli_scene_file_is_a_run_file_its_config_reruns(tmp_path, capsys):
+    """``nhsde simulate SCENE --out`` writes the run-file layout (plus the derivatives); its stored
+    configuration, run as a run file, gives the same statistics."""
+    out = tmp_path / "scene.nc"
+    argv = ["simulate", "ball-on-vibrating-plane", "--paths", "128", "--t1", "1", "--dt", "0.05", "--save-points", "5"]
+    assert main([*argv, "--seed", "3", "--set", "eps=0.8", "--x64", "--no-progress", "--out", str(out)]) == 0
+    assert f"saved {out} (netCDF)" in capsys.readouterr().out
+    scene = load_run(out)
+    config = RunConfig.from_dict(json.loads(scene.attrs["config"]))
+    again = run(config, tmp_path / "again.nc")
+    derivatives = {"d_mean_d_eps", "d_mean_d_nu", "d_cov_d_eps", "d_cov_d_nu"}
+    assert set(scene.data_vars) == set(again.data_vars) | derivatives
+    assert scene.attrs.keys() == again.attrs.keys() and scene.attrs["precision"] == "float64"
+    assert scene.attrs["pieces_done"] == 1 and scene.attrs["complete"] == 1
+    for name in again.data_vars:
+        np.testing.assert_allclose(scene[name].values, again[name].values, rtol=1e-12, atol=1e-15, err_msg=name)
+
+
+def test_a_run_builds_its_scene_once(tmp_path, monkeypatch):
+    """Validation builds the scene; the five pieces of the run reuse it."""
+    built = []
+    build = nhsde.scenes.BallOnVibratingPlane.build
+    monkeypatch.setattr(nhsde.scenes.BallOnVibratingPlane, "build", lambda self: built.append(1) or build(self))
+    f = tmp_path / "run.toml"
+    f.write_text(BASE_TOML.replace("keep_paths = true", "keep_paths = false"))
+    ds = run(load_config(f), tmp_path / "run.nc")
+    assert ds.attrs["pieces_done"] == 5 and "paths" not in ds and len(built) == 1

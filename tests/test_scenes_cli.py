@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import nhsde
-from nhsde._cli import main
+from nhsde.runs import load_run, main
 from nhsde.scenes import BallOnVibratingPlane, ChaplyginSleigh
 
 
@@ -91,7 +91,7 @@ def test_cli_lists_scenes(capsys):
 
 
 def test_cli_simulate_prints_and_saves(tmp_path, capsys):
-    out_file = tmp_path / "run.npz"
+    out_file = tmp_path / "run.nc"
     code = main(
         [
             "simulate",
@@ -112,10 +112,11 @@ def test_cli_simulate_prints_and_saves(tmp_path, capsys):
     assert code == 0
     text = capsys.readouterr().out
     assert "systematic drift" in text and "d/d eps" in text and "closed form" in text
-    data = np.load(out_file)
-    meta = json.loads(str(data["metadata"]))
-    assert meta["scene"] == "ball-on-vibrating-plane" and meta["parameters"]["eps"] == 2.0
-    assert meta["names"] == ["x", "y", "u_x", "u_y"]
+    assert f"saved {out_file} (netCDF)" in text
+    data = load_run(out_file)
+    assert data.attrs["format"] == "nhsde-run" and data.attrs["complete"] == 1 and data.attrs["n_used"] == 256
+    assert data.attrs["scene"] == "ball-on-vibrating-plane" and json.loads(data.attrs["parameters"])["eps"] == 2.0
+    assert list(data["name"].values) == ["x", "y", "u_x", "u_y"]
     assert data["cov"].shape == (11, 4, 4) and data["d_cov_d_nu"].shape == (11, 4, 4)
     # K is linear in ν: ∂K/∂ν = K/ν
     np.testing.assert_allclose(data["d_cov_d_nu"][-1], data["cov"][-1] / 1.0, rtol=1e-4, atol=1e-7)
@@ -128,8 +129,9 @@ def test_cli_rejects_bad_input():
         (["simulate", "ball"], "unknown scene 'ball'"),
         (["simulate", "ball-on-vibrating-plane", "--set", "eps=-1"], "eps=-1.0 is not allowed"),
         (["simulate", "ball-on-vibrating-plane", "--set", "mass=1"], "unknown parameter"),
-        (["simulate", "ball-on-vibrating-plane", "--solver", "rk4", "--no-progress"], "solver='rk4'"),
-        (["simulate", "ball-on-vibrating-plane", "--paths", "0", "--no-progress"], "n_paths=0"),
+        (["simulate", "ball-on-vibrating-plane", "--solver", "rk4", "--no-progress"], "--solver 'rk4': allowed"),
+        (["simulate", "ball-on-vibrating-plane", "--paths", "0", "--no-progress"], "--paths 0: must be ≥ 1"),
+        (["simulate", "ball-on-vibrating-plane", "--dt", "0.03"], "--dt 0.03: must divide"),
     ]:
         with pytest.raises(SystemExit, match=match):
             main(argv)
@@ -138,14 +140,16 @@ def test_cli_rejects_bad_input():
 def test_cli_runs_a_noiseless_scene_and_reports_the_missing_nu_derivative(capsys, tmp_path):
     """At ν = 0 paths scale like √ν: d/dν does not exist; the CLI says so (nan) instead of failing.
     The upright disk rolling straight without friction keeps its speed: x(t) = R Ω t."""
-    out = tmp_path / "disk.npz"
+    out = tmp_path / "disk.npz"  # written as netCDF under exactly this name
     assert (
         main(["simulate", "rolling-disk", "--paths", "64", "--t1", "0.5", "--dt", "0.01", "--x64", "--out", str(out)])
         == 0
     )
     text = capsys.readouterr().out
     assert "d/d nu is nan: it does not exist at nu = 0" in text
-    data = np.load(out)
+    assert f"saved {out} (netCDF, although the name does not end in .nc)" in text
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["disk.npz"]
+    data = load_run(out)
     assert np.all(np.isnan(data["d_mean_d_nu"])) and np.all(np.isfinite(data["d_mean_d_eps"]))
     x = data["mean"][-1, 0]
     assert abs(x - 0.5 * 3.0) < 1e-9 * 1.5, x  # default radius 1, spin 3 rad/s

@@ -199,9 +199,11 @@ class Ensemble(AbstractMoments):
     ``mean[i]``, ``cov[i]`` are the sample mean and (unbiased) covariance over the
     paths that did not fail, at ``ts[i]``; ``mean_se``, ``cov_se`` their
     Monte-Carlo standard errors; ``sums`` the moment sums they come from.
-    ``failed[p]`` marks path ``p`` (non-finite state, a solver error code, or
-    saved values whose fourth power overflows the precision); failed paths never
-    enter a statistic.
+    ``n_failed`` paths failed (non-finite state, a solver error code, or saved
+    values whose fourth power overflows the precision); failed paths never enter
+    a statistic.  With ``Save(paths=True)``, ``paths`` holds the per-path values
+    and ``failed[p]`` marks path ``p`` (a failed path keeps its last finite
+    state); otherwise both are ``None`` and memory does not grow with the paths.
     """
 
     ts: Float[Array, " n"]
@@ -210,17 +212,14 @@ class Ensemble(AbstractMoments):
     mean_se: Float[Array, "n k"]
     cov_se: Float[Array, "n k k"]
     n_used: Int[Array, ""]
-    failed: Bool[Array, " paths"]
+    n_failed: Int[Array, ""]
+    failed: Bool[Array, " paths"] | None
     paths: Float[Array, "paths n k"] | None
     sums: MomentSums
     names: tuple[str, ...] = eqx.field(static=True)
     roles: tuple[str, ...] = eqx.field(static=True)
     solver: str = eqx.field(static=True)
     dt: float = eqx.field(static=True)
-
-    @property
-    def n_failed(self):
-        return jnp.sum(self.failed)
 
     def standard_errors(self):
         return self.mean_se, self.cov_se

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import math
+from typing import Literal, overload
 
 import jax
+import jax.core
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
@@ -25,6 +27,14 @@ def cast_floats(tree, dtype):
     return jax.tree_util.tree_map(
         lambda p: p.astype(dtype) if isinstance(p, jax.Array) and jnp.issubdtype(p.dtype, jnp.floating) else p, tree
     )
+
+
+@overload
+def check_number(name: str, value, *, positive: bool = ..., integer: Literal[True]) -> int: ...
+@overload
+def check_number(name: str, value, *, positive: bool = ..., integer: Literal[False] = ...) -> float: ...
+@overload
+def check_number(name: str, value, *, positive: bool = ..., integer: bool = ...) -> int | float: ...
 
 
 def check_number(name: str, value, *, positive: bool = False, integer: bool = False) -> int | float:
@@ -65,5 +75,5 @@ def check_key(key):
             raise ValueError(f"key has shape {key.shape}; pass a single key, e.g. jax.random.key(0).")
         return key
     if isinstance(key, (jax.Array, np.ndarray)) and key.shape == (2,) and key.dtype == jnp.uint32:
-        return jr.wrap_key_data(key)
+        return jr.wrap_key_data(jnp.asarray(key))
     raise TypeError(f"key={key!r}; expected a JAX random key, e.g. jax.random.key(0).")

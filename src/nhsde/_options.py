@@ -88,7 +88,7 @@ class Batching(eqx.Module):
     """
 
     chunk_size: int | None = None
-    devices: Sequence[jax.Device] | None = eqx.field(default=None, converter=_devices)
+    devices: Sequence[jax.Device] | None = eqx.field(default=None, converter=_devices)  # pyright: ignore[reportInvalidTypeForm]  # jax.Device is a bare alias
     checkpoint: bool | None = None
 
     def __check_init__(self):

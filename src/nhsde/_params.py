@@ -22,15 +22,30 @@ import numpy as np
 
 from ._misc import is_concrete
 
-__all__ = ["AbstractParameters", "parameter", "sqrt_intensity", "validated"]
+__all__ = ["AbstractParameters", "check_ranges", "parameter", "sqrt_intensity", "validated"]
 
 
-def parameter(*, default, lower: float | None = None, strict: bool = False, doc: str = ""):
-    """A parameter leaf that must be finite and ``≥ lower`` (``> lower`` if ``strict``)."""
+def _as_leaf(value):
+    """``value`` as an array leaf; what cannot be one is kept as given, for the check to name it."""
+    if isinstance(value, (bool, np.bool_, str, bytes)) or value is None:
+        return value
+    try:
+        return jnp.asarray(value)
+    except (TypeError, ValueError):
+        return value
+
+
+def parameter(*, default, lower: float | None = None, strict: bool = False, doc: str = "", per_channel: bool = False):
+    """A parameter leaf that must be a finite real ``≥ lower`` (``> lower`` if ``strict``).
+
+    A parameter with a scalar default must be a scalar, unless ``per_channel``
+    (one value per noise channel is allowed): a vector given for a scalar is
+    refused rather than broadcast.
+    """
     return eqx.field(
         default=default,
-        converter=jnp.asarray,
-        metadata={"lower": lower, "strict": strict, "doc": doc},
+        converter=_as_leaf,
+        metadata={"lower": lower, "strict": strict, "doc": doc, "per_channel": per_channel},
     )
 
 
@@ -56,19 +71,7 @@ class AbstractParameters(eqx.Module):
         ]
 
     def __check_init__(self):
-        for f in _declared(self):
-            if not is_concrete(getattr(self, f.name)):
-                continue  # traced: checked by `validated` at run time
-            value = np.asarray(getattr(self, f.name))
-            lower, strict = f.metadata["lower"], f.metadata["strict"]
-            ok = np.all(np.isfinite(value))
-            if ok and lower is not None:
-                ok = np.all(value > lower) if strict else np.all(value >= lower)
-            if not ok:
-                raise ValueError(
-                    f"{type(self).__name__}: parameter {f.name}={value.tolist()!r} is not allowed; "
-                    f"{f.name} must be {_range_text(lower, strict)}."
-                )
+        check_ranges(self)
 
     def replace(self, **changes):
         """A copy with some parameters changed (and re-checked)."""
@@ -77,6 +80,38 @@ class AbstractParameters(eqx.Module):
             allowed = ", ".join(name for name, *_ in self.describe())
             raise TypeError(f"{type(self).__name__} has no parameter {unknown[0]!r}; parameters: {allowed}.")
         return dataclasses.replace(self, **changes)
+
+
+def _check_leaf(owner: str, f: dataclasses.Field, value) -> None:
+    kind = getattr(value, "dtype", None)
+    if kind is None or not (jnp.issubdtype(kind, jnp.floating) or jnp.issubdtype(kind, jnp.integer)):
+        raise TypeError(f"{owner}: parameter {f.name}={value!r}; expected a real number.")
+    if not f.metadata["per_channel"] and np.ndim(f.default) == 0 and np.ndim(value) != 0:
+        raise ValueError(f"{owner}: parameter {f.name} has shape {np.shape(value)}; {f.name} is one number.")
+    if not is_concrete(value):
+        return  # traced: checked by `validated` at run time
+    value = np.asarray(value)
+    lower, strict = f.metadata["lower"], f.metadata["strict"]
+    ok = np.all(np.isfinite(value))
+    if ok and lower is not None:
+        ok = np.all(value > lower) if strict else np.all(value >= lower)
+    if not ok:
+        raise ValueError(
+            f"{owner}: parameter {f.name}={value.tolist()!r} is not allowed; "
+            f"{f.name} must be {_range_text(lower, strict)}."
+        )
+
+
+def check_ranges(params) -> None:
+    """Check every concrete declared leaf of the parameters in ``params`` (any pytree) against its range.
+
+    Run when parameters are built, and again by ``simulate`` after casting them to
+    the state's precision (a radius of 1e-50 is 0 in float32).
+    """
+    for node in jax.tree_util.tree_leaves(params, is_leaf=_is_parameters):
+        if _is_parameters(node):
+            for f in _declared(node):
+                _check_leaf(type(node).__name__, f, getattr(node, f.name))
 
 
 def _is_parameters(node) -> bool:

@@ -19,24 +19,30 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Literal
+from typing import Literal, cast
 
 import diffrax as dfx
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 
 from ._brownian import BLOCK, StepIncrement, block_keys
 from ._ensemble import Ensemble, MomentSums, Save, SimulationError
-from ._misc import cast_floats, check_key, check_number, check_steps
+from ._misc import cast_floats, check_key, check_number, check_steps, is_concrete
 from ._options import AbstractSteps, AdaptiveSteps, Batching, FixedSteps
-from ._params import validated
-from ._solvers import SolverNeeds, solver_needs
+from ._params import check_ranges, validated
+from ._solvers import ExponentialEuler, SolverNeeds, solver_needs
 from ._system import StochasticSystem
 
-__all__ = ["simulate"]
+__all__ = ["MAX_PATH_INDEX", "MIN_PATHS", "simulate"]
+
+MIN_PATHS = 4
+"""Fewest paths a run may have: a covariance and the standard error of its estimate need four."""
+MAX_PATH_INDEX = 2**31 - 1
+"""Paths ``0 … MAX_PATH_INDEX − 1`` of a key have distinct noise (path indices are 32-bit integers)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,7 +50,6 @@ class _Plan:
     """The static shape of one run: what the compiled program depends on."""
 
     n_paths: int
-    first_path: int
     n_chunks: int
     chunk: int
     n_steps: int
@@ -68,11 +73,11 @@ class _Plan:
         return self.n_save - 1
 
 
-def _fixed_chunk(system, params, needs: SolverNeeds, plan: _Plan, y0, key, chunk_index, meter, meter_state):
+def _fixed_chunk(system, params, needs: SolverNeeds, plan: _Plan, y0, key, first_path, chunk_index, meter, meter_state):
     """Observations ``(chunk, n_save, k)``, failure flags and meter state of one chunk, fixed steps."""
     solver = needs.solver
     nb = plan.chunk // BLOCK
-    keys = block_keys(key, plan.first_path // BLOCK + chunk_index * nb, nb)
+    keys = block_keys(key, first_path // BLOCK + chunk_index * nb, nb)
     dtype = y0.dtype
     t0 = jnp.asarray(plan.t0, dtype)
     dt = jnp.asarray((plan.t1 - plan.t0) / plan.n_steps, dtype)
@@ -81,13 +86,19 @@ def _fixed_chunk(system, params, needs: SolverNeeds, plan: _Plan, y0, key, chunk
     observe = jax.vmap(jax.vmap(system.observe(plan.names), in_axes=(None, 0, None)), in_axes=(None, 0, None))
     total_ticks = plan.n_chunks * plan.intervals
 
-    def terms(increment):
+    def terms(increment, t_start):
+        # the solver steps over (0, dt), so its step is exactly dt whatever the magnitude of the time
+        # (float32 at t = 1e5 would round t + dt − t); the vector fields see the absolute time
         path = StepIncrement(increment, needs.levy_area)
-        return dfx.MultiTerm(dfx.ODETerm(system.drift_fn), dfx.ControlTerm(system.diffusion_fn, path))
+        drift = dfx.ODETerm(lambda t, y, args: system.drift_fn(t_start + t, y, args))
+        return dfx.MultiTerm(drift, dfx.ControlTerm(lambda t, y, args: system.diffusion_fn(t_start + t, y, args), path))
 
     def lane_step(y, t, increment):
-        y1, _, _, _, result = solver.step(terms(increment), t, t + dt, y, params, None, False)
-        return y1, result == dfx.RESULTS.successful
+        y1, _, _, _, result = solver.step(terms(increment, t), 0.0 * dt, dt, y, params, None, False)
+        good = (result == dfx.RESULTS.successful) & jnp.all(jnp.isfinite(y1))
+        # a failed lane keeps its last finite state: it is excluded from every statistic, and its
+        # reverse-mode cotangents stay finite (zero), so gradients equal forward mode's
+        return jnp.where(good, y1, y), good
 
     def block_step(y, k, block_key):
         # one draw per block; each lane gets its row through vmap
@@ -120,7 +131,7 @@ def _fixed_chunk(system, params, needs: SolverNeeds, plan: _Plan, y0, key, chunk
     first = system.noise.block_increment(
         keys[0], jnp.int32(0), base_dt, (system.noise_dim,), plan.substeps, needs.levy_area
     )
-    solver.init(terms(jax.tree_util.tree_map(lambda a: a[0], first)), t0, t0 + dt, y[0, 0], params)
+    solver.init(terms(jax.tree_util.tree_map(lambda a: a[0], first), t0), 0.0 * dt, dt, y[0, 0], params)
     ok = jnp.all(jnp.isfinite(y), axis=-1)
     first_obs = observe(t0, y, params)
     interval = jax.checkpoint(interval) if plan.checkpoint else interval
@@ -130,14 +141,16 @@ def _fixed_chunk(system, params, needs: SolverNeeds, plan: _Plan, y0, key, chunk
     return obs, ~ok.reshape(plan.chunk), meter_state
 
 
-def _adaptive_chunk(system, params, needs: SolverNeeds, plan: _Plan, y0, key, chunk_index, meter, meter_state):
+def _adaptive_chunk(
+    system, params, needs: SolverNeeds, plan: _Plan, y0, key, first_path, chunk_index, meter, meter_state
+):
     """As :func:`_fixed_chunk`, with adaptive steps (``diffeqsolve`` + ``VirtualBrownianTree``)."""
     solver = needs.solver if needs.embedded_error else dfx.HalfSolver(needs.solver)
     dtype = y0.dtype
     ts = jnp.linspace(plan.t0, plan.t1, plan.n_save, dtype=dtype)
     dt0 = (plan.t1 - plan.t0) / plan.n_steps
     observe = jax.vmap(system.observe(plan.names), in_axes=(0, 0, None))
-    ids = plan.first_path + chunk_index * plan.chunk + jnp.arange(plan.chunk)
+    ids = first_path + chunk_index * plan.chunk + jnp.arange(plan.chunk)
 
     def one(y0_, path_id):
         path = dfx.VirtualBrownianTree(
@@ -162,7 +175,8 @@ def _adaptive_chunk(system, params, needs: SolverNeeds, plan: _Plan, y0, key, ch
             max_steps=plan.max_steps,
             throw=False,
         )
-        ys = jnp.where(jnp.isfinite(sol.ys), sol.ys, jnp.nan)
+        ys = cast(jax.Array, sol.ys)  # saved at ts: an array
+        ys = jnp.where(jnp.isfinite(ys), ys, jnp.nan)
         bad = (sol.result != dfx.RESULTS.successful) | ~jnp.all(jnp.isfinite(ys))
         return observe(ts, ys, params), bad
 
@@ -172,26 +186,36 @@ def _adaptive_chunk(system, params, needs: SolverNeeds, plan: _Plan, y0, key, ch
 
 
 @eqx.filter_jit
-def _run(system: StochasticSystem, needs: SolverNeeds, y0, key, about, plan: _Plan, meter):
+def _run(system: StochasticSystem, needs: SolverNeeds, y0, key, first_path, about, plan: _Plan, meter):
     # Compute in the state's precision: float leaves follow y0's dtype.
     params = cast_floats(validated(system.params), y0.dtype)
     chunk_fn = _adaptive_chunk if plan.adaptive else _fixed_chunk
     total = plan.n_chunks * plan.chunk
     if plan.per_path_y0:
         y0_all = jnp.concatenate([y0, jnp.broadcast_to(y0[:1], (total - plan.n_paths, y0.shape[1]))])
-    else:
-        y0_all = jnp.broadcast_to(y0, (total, y0.shape[0]))
 
     def run(c, size, meter, meter_state):
         """Observations, failure flags, validity and meter state of the ``size`` paths of chunk ``c``."""
-        y0c = jax.lax.dynamic_slice_in_dim(y0_all, c * plan.chunk, size)
+        if plan.per_path_y0:
+            y0c = jax.lax.dynamic_slice_in_dim(y0_all, c * plan.chunk, size)
+        else:  # a common initial state is broadcast per chunk: no buffer that grows with the paths
+            y0c = jnp.broadcast_to(y0, (size, y0.shape[0]))
         sized = dataclasses.replace(plan, chunk=size)
-        obs, bad, meter_state = chunk_fn(system, params, needs, sized, y0c, key, c, meter, meter_state)
+        obs, bad, meter_state = chunk_fn(system, params, needs, sized, y0c, key, first_path, c, meter, meter_state)
         # A path whose saved values are too large for fourth moments in this precision
         # (e.g. escaping to infinity) counts as failed rather than overflowing the sums.
         bad = bad | ~jnp.all(jnp.isfinite(obs.reshape(size, -1) ** 4), axis=1)
-        valid = (c * plan.chunk + jnp.arange(size) < plan.n_paths) & ~bad
+        index = c * plan.chunk + jnp.arange(size)
+        bad = bad & (index < plan.n_paths)  # padding is neither valid nor failed
+        valid = (index < plan.n_paths) & ~bad
         return obs, bad, valid, meter_state
+
+    def tally(failures, bad, first_index):
+        """Failure count and first failed path, carried through the loop: memory independent of the paths."""
+        count, first = failures
+        index = first_index + jnp.arange(bad.size)
+        first = jnp.minimum(first, jnp.min(jnp.where(bad.reshape(-1), index, MAX_PATH_INDEX)))
+        return count + jnp.sum(bad, dtype=jnp.int32), first
 
     meter_state = meter.init()
     n_dev = len(plan.devices)
@@ -204,47 +228,92 @@ def _run(system: StochasticSystem, needs: SolverNeeds, y0, key, about, plan: _Pl
         # ensemble, so float32 second moments do not cancel.
         about = jax.lax.stop_gradient(jnp.where(valid0[0], obs0[0], 0.0))
     zeros = MomentSums.zeros(about.astype(obs0.dtype))
+    none_failed = (jnp.zeros((), jnp.int32), jnp.asarray(MAX_PATH_INDEX, jnp.asarray(first_path).dtype))
+    keep = plan.keep_paths  # per-path values and flags are kept only when asked for
 
     if n_dev == 1:
 
         def scan_body(carry, c):
-            sums, meter_state = carry
+            sums, failures, meter_state = carry
             obs, bad, valid, meter_state = run(c, plan.chunk, meter, meter_state)
-            return (sums.add_paths(obs, valid), meter_state), (obs if plan.keep_paths else None, bad)
+            carry = (sums.add_paths(obs, valid), tally(failures, bad, c * plan.chunk), meter_state)
+            return carry, (obs, bad) if keep else None
 
-        start = (zeros.add_paths(obs0, valid0), meter_state)
-        (sums, meter_state), (obs_rest, bad_rest) = jax.lax.scan(scan_body, start, jnp.arange(1, plan.n_chunks))
-        obs_all = None if obs_rest is None else jnp.concatenate([obs0[None], obs_rest])
-        bad_all = jnp.concatenate([bad0[None], bad_rest])
+        start = (zeros.add_paths(obs0, valid0), tally(none_failed, bad0, 0), meter_state)
+        (sums, failures, meter_state), rest = jax.lax.scan(scan_body, start, jnp.arange(1, plan.n_chunks))
+        if keep:
+            obs_all = jnp.concatenate([obs0[None], rest[0]])
+            bad_all = jnp.concatenate([bad0[None], rest[1]])
     else:
         mesh = jax.sharding.Mesh(np.asarray(plan.devices), ("paths",))
         spec = jax.sharding.PartitionSpec("paths")
 
         def device_sums(c):
             obs, bad, valid, _ = run(c[0], plan.chunk, dfx.NoProgressMeter(), None)
-            out = (zeros.block_sums(obs, valid), obs if plan.keep_paths else None, bad)
+            out = (zeros.block_sums(obs, valid), obs if keep else None, bad)
             return jax.tree_util.tree_map(lambda a: a[None], out)
 
         sharded = jax.shard_map(device_sums, mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)
 
         def round_body(carry, r):
-            sums, meter_state = carry
+            sums, failures, meter_state = carry
             block_sums, obs, bad = sharded(r * n_dev + jnp.arange(n_dev))
             # devices in order, and blocks in order within each: path order
             sums = sums.add_blocks(jax.tree_util.tree_map(lambda a: a.reshape(-1, *a.shape[2:]), block_sums))
+            failures = tally(failures, bad, r * n_dev * plan.chunk)
             meter_state = meter.step(meter_state, (r + 1).astype(y0.dtype) / (plan.n_chunks // n_dev))
-            return (sums, meter_state), (obs, bad)
+            return (sums, failures, meter_state), (obs, bad) if keep else None
 
-        (sums, meter_state), (obs_all, bad_all) = jax.lax.scan(
-            round_body, (zeros, meter_state), jnp.arange(plan.n_chunks // n_dev)
+        (sums, failures, meter_state), rest = jax.lax.scan(
+            round_body, (zeros, none_failed, meter_state), jnp.arange(plan.n_chunks // n_dev)
         )
-        obs_all = None if obs_all is None else obs_all.reshape(-1, *obs_all.shape[2:])
-        bad_all = bad_all.reshape(-1, plan.chunk)
+        if keep:
+            obs_all, bad_all = rest
+            obs_all = obs_all.reshape(-1, *obs_all.shape[2:])
     meter.close(meter_state)
-    failed = bad_all.reshape(-1)[: plan.n_paths]
-    paths = None if obs_all is None else obs_all.reshape(total, plan.n_save, -1)[: plan.n_paths]
+    failed = paths = None
+    if keep:
+        failed = bad_all.reshape(-1)[: plan.n_paths]
+        paths = obs_all.reshape(total, plan.n_save, -1)[: plan.n_paths]
     ts = jnp.linspace(plan.t0, plan.t1, plan.n_save, dtype=y0.dtype)
-    return ts, sums, failed, paths
+    return ts, sums, failures, failed, paths
+
+
+@eqx.filter_jit
+def _linear_propagator(system: StochasticSystem, needs: SolverNeeds, params, dt):
+    """``R(A·dt)``: one noiseless step of the solver on ``dZ = A Z dt`` from each unit vector, ``A`` the declared
+    linear drift (the noise draw is multiplied by a zero diffusion)."""
+    a = system.linear_drift(params).astype(dt.dtype)
+    d = a.shape[0]
+    increment = system.noise.block_increment(jr.key(0), jnp.int32(0), dt, (system.noise_dim,), 1, needs.levy_area)
+    path = StepIncrement(jax.tree_util.tree_map(lambda x: x[0], increment), needs.levy_area)
+    terms = dfx.MultiTerm(
+        dfx.ODETerm(lambda t, y, args: a @ y),
+        dfx.ControlTerm(lambda t, y, args: jnp.zeros((d, system.noise_dim), y.dtype), path),
+    )
+    step = lambda e: needs.solver.step(terms, 0.0 * dt, dt, e, params, None, False)[0]
+    return jax.vmap(step, out_axes=1)(jnp.eye(d, dtype=dt.dtype)), a
+
+
+def _check_linear_stability(system: StochasticSystem, needs: SolverNeeds, dt: float, dtype) -> None:
+    """Refuse a step at which the solver amplifies the declared linear drift (friction) that the exact flow damps.
+
+    Euler–Maruyama on ``u̇ = −2εu`` multiplies by ``1 − 2εdt`` per step: beyond ``ε·dt = 1`` the paths grow
+    without bound although the friction damps them; known before the run from ``StochasticSystem.linear_drift``.
+    """
+    if system.linear_drift is None or isinstance(needs.solver, ExponentialEuler) or not is_concrete(system.params):
+        return
+    work = jnp.float64 if jnp.finfo(dtype).bits > 32 else jnp.float32
+    with jax.ensure_compile_time_eval():  # concrete parameters: known now, also under an outer jit
+        propagator, a = _linear_propagator(system, needs, cast_floats(system.params, work), jnp.asarray(dt, work))
+    grows = np.max(np.abs(np.linalg.eigvals(np.asarray(propagator, np.float64))))
+    decays = np.max(np.real(np.linalg.eigvals(np.asarray(a, np.float64)))) <= 0
+    if decays and grows > 1 + 1e-6:
+        raise ValueError(
+            f"dt={dt}: solver {needs.name!r} is unstable on this system's linear friction at this step (one step "
+            f"multiplies it by up to {grows:.3g} while the exact flow decays); take dt smaller, or use "
+            "solver='exponential', which is stable at any step."
+        )
 
 
 def _residuals_too_large(steps_per_save, chunk, state_dim, dtype) -> bool:
@@ -255,6 +324,11 @@ def _check_y0(system, y0, n_paths):
     y0 = jnp.asarray(y0)
     if not jnp.issubdtype(y0.dtype, jnp.floating):
         y0 = y0.astype(jnp.result_type(float))
+    if jnp.finfo(y0.dtype).bits < 32:
+        raise TypeError(
+            f"y0 has dtype {y0.dtype}; simulate computes in the state's precision, and fourth moments overflow "
+            "below float32: use float32 or float64."
+        )
     d = system.state_dim
     if y0.shape not in ((d,), (n_paths, d)):
         raise ValueError(
@@ -325,11 +399,16 @@ def simulate(
     if adaptive and not system.noise.continuous:
         raise ValueError("adaptive steps need a Wiener driver (VirtualBrownianTree); use FixedSteps.")
     n_paths = check_number("n_paths", n_paths, integer=True)
-    if n_paths < 1:
-        raise ValueError(f"n_paths={n_paths}; must be ≥ 1.")
+    if n_paths < MIN_PATHS:
+        raise ValueError(f"n_paths={n_paths}; must be ≥ {MIN_PATHS} (a covariance and its standard error need 4).")
     first_path = check_number("first_path", first_path, integer=True)
     if first_path < 0 or first_path % BLOCK:
         raise ValueError(f"first_path={first_path}; must be a non-negative multiple of {BLOCK}.")
+    if first_path + n_paths > MAX_PATH_INDEX:
+        raise ValueError(
+            f"first_path + n_paths = {first_path + n_paths} exceeds {MAX_PATH_INDEX}, the paths a key indexes; "
+            "use another key for more paths."
+        )
     t0 = check_number("t0", t0)
     t1 = check_number("t1", t1)
     if t1 <= t0:
@@ -371,10 +450,13 @@ def simulate(
     chunk_size = batching.chunk_size
     if chunk_size is None:
         chunk_size = min(BLOCK * math.ceil(n_paths / BLOCK), 8192)
-    chunk_size = check_number("chunk_size", chunk_size, integer=True)
+    # never more than the paths need: padding is simulated work that no statistic uses
+    chunk_size = min(check_number("chunk_size", chunk_size, integer=True), BLOCK * math.ceil(n_paths / BLOCK))
+    check_ranges(cast_floats(system.params, y0.dtype))  # a radius of 1e-50 is 0 in float32
+    _check_linear_stability(system, needs, step, y0.dtype)
     if needs.interpretation not in ("any", system.interpretation):
         system = system.converted(needs.interpretation)
-    devices = tuple(jax.devices()) if batching.devices is None else batching.devices
+    devices = tuple(jax.devices()) if batching.devices is None else tuple(batching.devices)
     n_chunks = math.ceil(n_paths / chunk_size)
     if len(devices) > 1:
         n_chunks = len(devices) * math.ceil(n_chunks / len(devices))
@@ -383,7 +465,6 @@ def simulate(
         checkpoint = _residuals_too_large(n_steps // (n_save - 1), chunk_size, system.state_dim, y0.dtype)
     plan = _Plan(
         n_paths=n_paths,
-        first_path=first_path,
         n_chunks=n_chunks,
         chunk=chunk_size,
         n_steps=n_steps,
@@ -406,19 +487,33 @@ def simulate(
         raise TypeError(
             f"progress_meter={meter!r}; expected a diffrax progress meter, e.g. diffrax.TqdmProgressMeter()."
         )
-    ts, sums, failed, paths = _run(system, needs, y0, key, about, plan, meter)
+    ts, sums, (n_failed, first_failed), failed, paths = _run(
+        system, needs, y0, key, jnp.asarray(first_path), about, plan, meter
+    )
     mean, cov, mean_se, cov_se = sums.statistics()
-    n_failed = jnp.sum(failed)
-    if on_failure == "raise":
-        concrete = not isinstance(n_failed, jax.core.Tracer)
-        if concrete and int(n_failed) > 0:
-            first = int(np.argmax(np.asarray(failed)))
+    too_few = sums.count < MIN_PATHS
+    overflow = ~jnp.all(jnp.array([jnp.all(jnp.isfinite(s)) for s in (mean, cov, mean_se, cov_se)]))
+    if is_concrete(n_failed):
+        if on_failure == "raise" and int(n_failed) > 0:
             raise SimulationError(
-                f"{int(n_failed)} of {n_paths} paths failed (non-finite state or solver error), first path {first}; "
+                f"{int(n_failed)} of {n_paths} paths failed (non-finite state or solver error), first path "
+                f"{int(first_failed)}; "
                 f"try a smaller dt, a stiffer-stable solver, or on_failure='exclude' to inspect them."
             )
-        if not concrete:
+        if bool(too_few):
+            raise SimulationError(
+                f"only {int(sums.count)} of {n_paths} paths succeeded ({int(n_failed)} failed); statistics need "
+                f"≥ {MIN_PATHS}: try a smaller dt or a stiffer-stable solver."
+            )
+        if bool(overflow):
+            raise SimulationError(
+                f"the moment sums overflow {y0.dtype} (statistics not finite); use float64 states (jax_enable_x64)."
+            )
+    else:
+        if on_failure == "raise":
             mean = eqx.error_if(mean, n_failed > 0, "simulate: some paths failed (non-finite state or solver error).")
+        mean = eqx.error_if(mean, too_few, f"simulate: fewer than {MIN_PATHS} paths succeeded.")
+        mean = eqx.error_if(mean, overflow, "simulate: the moment sums overflow; use float64 states.")
     roles = tuple(
         system.layout.roles[system.layout.index(n)] if n in system.layout.names else "observable" for n in names
     )
@@ -429,6 +524,7 @@ def simulate(
         mean_se=mean_se,
         cov_se=cov_se,
         n_used=sums.count,
+        n_failed=n_failed,
         failed=failed,
         paths=paths,
         sums=sums,

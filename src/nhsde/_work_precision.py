@@ -88,6 +88,7 @@ def work_precision(
             solver=solver,
             save=final,
         )
+        assert ens.paths is not None  # Save(paths=True)
         return np.asarray(ens.paths[:, -1], np.float64)
 
     ref = endpoint(ref_solver, reference_dt)

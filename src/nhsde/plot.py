@@ -104,7 +104,7 @@ def drift_curves(stats, *, theory: Callable | None = None, axes=None, n_se: floa
             label=f"K[{name},{name}]",
             color=color,
         )
-        if theory is not None:
+        if th_mean is not None and th_cov is not None:
             axes[0].plot(tt, th_mean[:, i], "-", color=color, lw=1)
             axes[1].plot(tt, th_cov[:, i, i], "-", color=color, lw=1)
     axes[0].set_title("systematic drift")
@@ -190,6 +190,7 @@ def confidence_ellipse(ax, mean, cov, *, n_sigma: float = 2.0, **kwargs):
     w, v = np.linalg.eigh(cov)
     angle = np.degrees(np.arctan2(v[1, 1], v[0, 1]))
     kwargs.setdefault("fill", False)
-    ax.add_patch(Ellipse(mean, 2 * n_sigma * np.sqrt(w[1]), 2 * n_sigma * np.sqrt(w[0]), angle=angle, **kwargs))
+    center = (float(mean[0]), float(mean[1]))
+    ax.add_patch(Ellipse(center, 2 * n_sigma * np.sqrt(w[1]), 2 * n_sigma * np.sqrt(w[0]), angle=angle, **kwargs))
     ax.autoscale_view()
     return ax

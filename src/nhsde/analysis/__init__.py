@@ -10,7 +10,8 @@
   linearisation about a steady state in a family of steady states (S4 Theorem 4.1).
 - :func:`chaplygin_system`, :func:`steady_motions`, :func:`steady_stability`,
   :func:`stability_boundary`: steady motions of Chaplygin systems (S4 (4.9)), the
-  Routh-reduced characteristic equation (4.19) and Andronov–Hopf points (Remark 4.6).
+  Routh-reduced characteristic equation (4.19) (:func:`routh_pencil`,
+  :func:`delta_matrix`) and Andronov–Hopf points (Remark 4.6).
 - :func:`stationary_spread`, :func:`linear_residence_time`, :func:`residence_time`:
   with friction and noise, the linearised (Ornstein–Uhlenbeck) spread about a
   stable steady motion and the mean residence time near it, linearised and by
@@ -20,11 +21,14 @@ A vector field is any ``f(t, y, params)``, e.g. :class:`nhsde.bodies.RollingFiel
 or a :class:`~nhsde.StochasticSystem`'s ``drift_fn``.
 """
 
-from ._integrals import (
-    Flow as Flow,
-    integral_drift as integral_drift,
-    integral_rates as integral_rates,
-    solve_flow as solve_flow,
+from ._chaplygin import ChaplyginSystem as ChaplyginSystem, chaplygin_system as chaplygin_system
+from ._flow import Flow as Flow, solve_flow as solve_flow
+from ._integrals import integral_drift as integral_drift, integral_rates as integral_rates
+from ._linearised import (
+    LinearResidence as LinearResidence,
+    Spread as Spread,
+    linear_residence_time as linear_residence_time,
+    stationary_spread as stationary_spread,
 )
 from ._liouville import (
     LiouvilleCheck as LiouvilleCheck,
@@ -39,24 +43,13 @@ from ._poincare import (
     from_andoyer as from_andoyer,
     poincare_section as poincare_section,
 )
-from ._residence import (
-    LinearResidence as LinearResidence,
-    Residence as Residence,
-    Spread as Spread,
-    linear_residence_time as linear_residence_time,
-    residence_time as residence_time,
-    stationary_spread as stationary_spread,
-)
+from ._residence import Residence as Residence, residence_time as residence_time
+from ._routh import delta_matrix as delta_matrix, routh_pencil as routh_pencil
 from ._stability import Stability as Stability, jacobian as jacobian, linear_stability as linear_stability
-from ._steady import (
-    ChaplyginSystem as ChaplyginSystem,
+from ._steady import SteadyMotions as SteadyMotions, steady_motions as steady_motions
+from ._steady_stability import (
     StabilityBoundary as StabilityBoundary,
-    SteadyMotions as SteadyMotions,
     SteadyStability as SteadyStability,
-    chaplygin_system as chaplygin_system,
-    delta_matrix as delta_matrix,
-    routh_pencil as routh_pencil,
     stability_boundary as stability_boundary,
-    steady_motions as steady_motions,
     steady_stability as steady_stability,
 )

@@ -20,7 +20,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._liouville import _cast
+from .._misc import cast_floats
 
 __all__ = ["PoincareSection", "andoyer", "from_andoyer", "poincare_section"]
 
@@ -174,7 +174,7 @@ def poincare_section(
         raise ValueError(f"points has shape {points.shape}; expected (n, 2) pairs (l, L/G).")
     dtype = points.dtype if jnp.issubdtype(points.dtype, jnp.floating) else jnp.result_type(float)
     points = points.astype(dtype)
-    params = _cast(params, dtype)
+    params = cast_floats(params, dtype)
     return _section(
         vector_field,
         energy,

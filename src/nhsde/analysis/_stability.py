@@ -18,18 +18,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Complex, Float
 
-from ._liouville import FAST_COMPILE
+from .._misc import FAST_COMPILE
+from ._inputs import require_float64
 
-__all__ = ["Stability", "jacobian", "linear_stability"]
-
-
-def require_float64(name: str, x) -> None:
-    """Raise unless ``x`` is float64: the tolerances that separate zero, neutral and growing roots need it."""
-    if jnp.asarray(x).dtype != jnp.float64:
-        raise ValueError(
-            f"{name} has dtype {jnp.asarray(x).dtype}; stability analysis needs float64 "
-            "(call jax.config.update('jax_enable_x64', True) before creating arrays)."
-        )
+__all__ = ["Stability", "classify", "jacobian", "linear_stability"]
 
 
 def jacobian(field: Callable, state, params, t=0.0) -> Float[Array, "n n"]:
@@ -37,7 +29,7 @@ def jacobian(field: Callable, state, params, t=0.0) -> Float[Array, "n n"]:
     return jax.jacfwd(lambda y: field(t, y, params))(jnp.asarray(state))
 
 
-@eqx.filter_jit(compiler_options=FAST_COMPILE)
+@eqx.filter_jit(compiler_options=FAST_COMPILE)  # pyright: ignore[reportCallIssue]  (jit options untyped)
 def _value_and_jacobian(field, state, params, t):
     return field(t, state, params), jacobian(field, state, params, t)
 
@@ -87,16 +79,16 @@ def classify(eigenvalues, n_family: int, rtol: float, scale: float | None = None
             f"(tolerance sqrt(rtol)*scale = {np.sqrt(rtol) * scale:.3e}): the state is not in a "
             f"{n_family}-parameter family of steady states, or n_family is wrong."
         )
-    rest = rest[np.argsort(-rest.real, kind="stable")]
-    growth = float(np.max(rest.real))
+    rest = rest[np.argsort(-np.real(rest), kind="stable")]
+    growth = float(np.max(np.real(rest)))
     if growth > tol:
         verdict = "unstable"
-    elif np.all(rest.real < -tol):
+    elif np.all(np.real(rest) < -tol):
         verdict = "asymptotically stable"
     else:
         verdict = "neutral"
     return Stability(
-        eigenvalues=jnp.asarray(eig[np.argsort(-eig.real, kind="stable")]),
+        eigenvalues=jnp.asarray(eig[np.argsort(-np.real(eig), kind="stable")]),
         family_roots=jnp.asarray(family),
         roots=jnp.asarray(rest),
         growth_rate=jnp.asarray(np.float64(growth)),

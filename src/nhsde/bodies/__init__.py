@@ -10,6 +10,8 @@
   and a sphere (S2 (1.4)–(1.13)); :class:`FlatBaseField`: a flat base on a sphere
   (S2 (4.6)–(4.7)).
 - The S2 catalogue of invariant measures and extra integrals.
+- Directions on the unit sphere: :func:`fibonacci_directions` (nearly uniform),
+  :func:`tangent_basis` (the tangent plane at a point).
 """
 
 from ._body import RigidBody as RigidBody
@@ -46,4 +48,6 @@ from ._surfaces import (
     ImplicitSurface as ImplicitSurface,
     Sphere as Sphere,
     SphericalCavity as SphericalCavity,
+    fibonacci_directions as fibonacci_directions,
+    tangent_basis as tangent_basis,
 )

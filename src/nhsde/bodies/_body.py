@@ -5,8 +5,9 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
+from .._misc import is_concrete
 from .._params import AbstractParameters, parameter
-from ._surfaces import AbstractSurface, _concrete
+from ._surfaces import AbstractSurface
 
 __all__ = ["RigidBody"]
 
@@ -22,7 +23,7 @@ class RigidBody(AbstractParameters):
 
     mass: jnp.ndarray = parameter(default=1.0, lower=0.0, strict=True, doc="mass m")
     inertia: jnp.ndarray = parameter(default=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), doc="I")
-    surface: AbstractSurface
+    surface: AbstractSurface  # pyright: ignore[reportGeneralTypeIssues]  (__init__ is custom: no field order)
     gyrostat: jnp.ndarray = parameter(default=(0.0, 0.0, 0.0), doc="gyrostatic momentum S")
 
     def __init__(self, *, mass=1.0, inertia=(1.0, 1.0, 1.0), surface: AbstractSurface, gyrostat=(0.0, 0.0, 0.0)):
@@ -33,17 +34,17 @@ class RigidBody(AbstractParameters):
         inertia = jnp.asarray(inertia)
         if inertia.shape == (3,):
             inertia = jnp.diag(inertia)
-        self.mass = mass
+        self.mass = jnp.asarray(mass)
         self.inertia = inertia
         self.surface = surface
-        self.gyrostat = gyrostat
+        self.gyrostat = jnp.asarray(gyrostat)
 
     def __check_init__(self):
         if np.shape(self.inertia) != (3, 3):
             raise ValueError(f"RigidBody: inertia has shape {np.shape(self.inertia)}; expected (3,) or (3, 3).")
         if np.shape(self.gyrostat) != (3,):
             raise ValueError(f"RigidBody: gyrostat has shape {np.shape(self.gyrostat)}; expected (3,).")
-        if not _concrete(self.inertia):
+        if not is_concrete(self.inertia):
             return
         i = np.asarray(self.inertia, np.float64)
         eig = np.linalg.eigvalsh(0.5 * (i + i.T))

@@ -15,8 +15,9 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
+from .._misc import is_concrete
 from ._rolling import FlatBaseParameters, RollingParameters, contact_inertia
-from ._surfaces import Ellipsoid, Sphere, SphericalCavity, _concrete
+from ._surfaces import Ellipsoid, Sphere, SphericalCavity
 
 __all__ = [
     "balanced_ball_integral",
@@ -43,13 +44,13 @@ def _require(condition: bool, message: str) -> None:
         raise ValueError(message)
 
 
-def _ball(p: RollingParameters, *, balanced: bool):
+def _ball(p: RollingParameters, *, balanced: bool) -> Sphere | SphericalCavity:
     surface = p.body.surface
-    _require(
-        isinstance(surface, (Sphere, SphericalCavity)),
-        f"this formula is for a ball (Sphere or SphericalCavity surface); got {type(surface).__name__}.",
-    )
-    if balanced and _concrete(surface.offset):
+    if not isinstance(surface, (Sphere, SphericalCavity)):
+        raise ValueError(
+            f"this formula is for a ball (Sphere or SphericalCavity surface); got {type(surface).__name__}."
+        )
+    if balanced and is_concrete(surface.offset):
         _require(
             bool(np.all(np.asarray(surface.offset) == 0)),
             f"this formula is for a balanced ball (offset 0); got offset={np.asarray(surface.offset).tolist()}.",
@@ -58,7 +59,7 @@ def _ball(p: RollingParameters, *, balanced: bool):
 
 
 def _plane(p: RollingParameters) -> None:
-    if _concrete(p.curvature):
+    if is_concrete(p.curvature):
         _require(
             float(p.curvature) == 0.0, f"this formula is for the plane (curvature 0); got k={float(p.curvature):g}."
         )
@@ -97,7 +98,7 @@ def ball_in_cavity_integral(y, p: RollingParameters):
     F = [(Jω, Jω) + det J (ω, Jω)(J⁻¹γ, J⁻¹γ)] / (γ, J⁻¹γ).
     """
     j, surface = _ball_j(p)
-    if _concrete(p.curvature, surface.radius):
+    if is_concrete(p.curvature, surface.radius):
         kappa = float(_kappa(np.asarray(p.curvature), surface, np.asarray(surface.radius)))
         _require(abs(kappa + 1.0) < 1e-12, f"this integral exists at κ = −1 (k = 2/R); here κ = {kappa:g}.")
     omega, n = _split(y)
@@ -118,7 +119,7 @@ def unbalanced_ball_integral(y, p: RollingParameters):
 
 def _revolution(y, p: RollingParameters):
     inertia = p.body.inertia
-    if _concrete(inertia):
+    if is_concrete(inertia):
         i = np.asarray(inertia)
         _require(
             np.allclose(i, np.diag(np.diag(i))) and np.isclose(i[0, 0], i[1, 1]),
@@ -151,7 +152,7 @@ def revolution_integral(y, p: RollingParameters):
 def spherical_inertia_measure(y, p: RollingParameters):
     """``I = μE``, any surface, on the plane: ``ρ = (μ + m r²)(μ + m(r, γ)²)^{1/2}``, S2 (3.7)."""
     inertia = p.body.inertia
-    if _concrete(inertia):
+    if is_concrete(inertia):
         i = np.asarray(inertia)
         _require(np.allclose(i, i[0, 0] * np.eye(3)), f"this formula is for I = μE; got {i.tolist()}.")
     _plane(p)
@@ -177,7 +178,8 @@ def ellipsoid_measure(y, p: RollingParameters):
     S2 §3.3, Table 1, with ``(α, β)`` recovered from ``I`` through (3.9).
     """
     surface = p.body.surface
-    _require(isinstance(surface, Ellipsoid), f"this formula is for an Ellipsoid surface; got {type(surface).__name__}.")
+    if not isinstance(surface, Ellipsoid):
+        raise ValueError(f"this formula is for an Ellipsoid surface; got {type(surface).__name__}.")
     _plane(p)
     a2 = surface.semi_axes**2
     inertia, m = jnp.diag(p.body.inertia), p.body.mass
@@ -186,7 +188,7 @@ def ellipsoid_measure(y, p: RollingParameters):
     lhs = jnp.stack([-m * det_b * jnp.ones(3), inertia], axis=1)
     rhs = m * det_b / a2 - inertia * a2
     alpha, beta = jnp.linalg.lstsq(lhs, rhs)[0]
-    if _concrete(inertia, a2):
+    if is_concrete(inertia, a2):
         off = np.asarray(lhs @ jnp.stack([alpha, beta]) - rhs)
         _require(
             bool(np.all(np.abs(off) <= 1e-9 * np.max(np.abs(np.asarray(rhs)))))
@@ -204,7 +206,7 @@ def ellipsoid_measure(y, p: RollingParameters):
 
 
 def _flat_base_check(p: FlatBaseParameters) -> None:
-    if _concrete(p.z, p.inertia):
+    if is_concrete(p.z, p.inertia):
         _require(
             float(p.z) == 0.0 or float(p.inertia[0]) == float(p.inertia[1]),
             "the flat base has a measure and an extra integral for z = 0 or I₁ = I₂ (S2 §4.5); got "

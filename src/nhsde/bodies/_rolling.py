@@ -35,10 +35,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._misc import is_concrete
 from .._params import AbstractParameters, parameter
 from .._system import StateLayout
 from ._body import RigidBody
-from ._surfaces import Disk, SphericalCavity, _concrete, fibonacci_directions
+from ._surfaces import Disk, SphericalCavity, fibonacci_directions
 
 __all__ = [
     "FlatBaseField",
@@ -113,8 +114,8 @@ class RollingParameters(AbstractParameters):
         if not isinstance(body, RigidBody):
             raise TypeError(f"RollingParameters: body={body!r}; expected nhsde.bodies.RigidBody.")
         self.body = body
-        self.curvature = curvature
-        self.gravity = gravity
+        self.curvature = jnp.asarray(curvature)
+        self.gravity = jnp.asarray(gravity)
 
 
 _OMEGA = ("omega_1", "omega_2", "omega_3")
@@ -172,7 +173,7 @@ def rolling_energy(y, p):
 def check_rolling_configuration(p: RollingParameters, sphere: bool) -> None:
     """Structural checks of a rolling problem (concrete parameters): support, gravity, surface."""
     surface = p.body.surface
-    if not _concrete(p.curvature, p.gravity):
+    if not is_concrete(p.curvature, p.gravity):
         return
     k, g = float(p.curvature), float(p.gravity)
     if not sphere and k != 0.0:

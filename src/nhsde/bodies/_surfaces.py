@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._misc import is_concrete
 from .._params import AbstractParameters, parameter
 
 __all__ = [
@@ -38,6 +39,7 @@ __all__ = [
     "Sphere",
     "SphericalCavity",
     "fibonacci_directions",
+    "tangent_basis",
 ]
 
 
@@ -58,10 +60,6 @@ def tangent_basis(n):
     return jnp.stack([t1, jnp.cross(n, t1)], axis=1)
 
 
-def _concrete(*leaves) -> bool:
-    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(leaves))
-
-
 class AbstractSurface(AbstractParameters):
     """A convex body surface given by its inverse Gauss map ``r(γ)``, S2 (1.5).
 
@@ -70,7 +68,7 @@ class AbstractSurface(AbstractParameters):
     """
 
     @abc.abstractmethod
-    def _contact(self, n):
+    def _contact(self, n) -> jax.Array:
         """``r`` for a unit normal ``n`` (pointing into the body)."""
 
     def contact_point(self, gamma):
@@ -136,7 +134,7 @@ class Ellipsoid(AbstractSurface):
     offset: jnp.ndarray = parameter(default=(0.0, 0.0, 0.0), doc="c = centre of mass − centre")
 
     def __check_init__(self):
-        if _concrete(self.semi_axes) and np.shape(self.semi_axes) != (3,):
+        if is_concrete(self.semi_axes) and np.shape(self.semi_axes) != (3,):
             raise ValueError(f"Ellipsoid: semi_axes has shape {np.shape(self.semi_axes)}; expected (3,).")
 
     def _contact(self, n):
@@ -184,10 +182,10 @@ class BodyOfRevolution(AbstractSurface):
         if not callable(height):
             raise TypeError(f"BodyOfRevolution: height={height!r} must be a function height(u, shape) -> Z.")
         self.height = height
-        self.shape = shape
+        self.shape = jnp.asarray(shape)
 
     def __check_init__(self):
-        if not _concrete(self.shape):
+        if not is_concrete(self.shape):
             return
         u = jnp.linspace(-1.0, 1.0, 401)
         z, rho1, rho2 = (np.asarray(a) for a in jax.jit(jax.vmap(self._radii))(u))
@@ -237,12 +235,12 @@ class ImplicitSurface(AbstractSurface):
         if not callable(f):
             raise TypeError(f"ImplicitSurface: f={f!r} must be a function f(x, shape) -> scalar.")
         self.f = f
-        self.shape = shape
-        self.size = size
+        self.shape = jnp.asarray(shape)
+        self.size = jnp.asarray(size)
         self.iterations = int(iterations)
 
     def __check_init__(self):
-        if not _concrete(self.shape, self.size):
+        if not is_concrete(self.shape, self.size):
             return
         inside = float(self.f(jnp.zeros(3), self.shape))
         if not inside < 0:
@@ -279,7 +277,7 @@ class ImplicitSurface(AbstractSurface):
         s = jax.lax.fori_loop(0, self.iterations, ray, jnp.asarray(self.size, n.dtype))
         x = -s * n
         lam = jnp.linalg.norm(jax.grad(self.f)(x, self.shape))
-        return jax.lax.fori_loop(0, self.iterations, lambda _, c: self._newton(*c, n), (x, lam))
+        return jax.lax.fori_loop(0, self.iterations, lambda _, c: self._newton(c[0], c[1], n), (x, lam))
 
     def _residual(self, n):
         x, lam = self._solve(n)

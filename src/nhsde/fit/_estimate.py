@@ -54,7 +54,7 @@ class AbstractStatisticsModel(eqx.Module):
     """Model means and covariances of named components at given times."""
 
     @abc.abstractmethod
-    def moments(self, system: StochasticSystem, ts: tuple[float, ...], names: tuple[str, ...]):
+    def moments(self, system: StochasticSystem, ts: tuple[float, ...], names: tuple[str, ...]) -> tuple[Array, Array]:
         """``(mean (T, k), cov (T, k, k))``, differentiable in ``system.params``."""
 
     @abc.abstractmethod
@@ -325,7 +325,7 @@ def estimate(
     unknown = sorted(set(init) - set(vary))
     if unknown:
         raise ValueError(f"init: {unknown} are not among vary={vary}.")
-    theta0 = np.array([float(init.get(n, getattr(system.params, n))) for n in vary])
+    theta0 = np.array([float(init[n] if n in init else getattr(system.params, n)) for n in vary])
     for name, value, lo in zip(vary, theta0, lower):
         if lo is not None and not value > lo:
             raise ValueError(
@@ -356,9 +356,10 @@ def estimate(
     history, converged, steps = [], False, 0
     for steps in range(1, max_steps + 1):
         new_phi, state, value, grad = _step(phi, state, problem, optimizer, reuse)
-        history.append([float(value), *np.asarray(problem.theta(phi))])
-        if not np.isfinite(float(value)):
-            raise FloatingPointError(f"estimate: the loss is {float(value)} at {dict(zip(vary, history[-1][1:]))}.")
+        loss = float(np.asarray(value))
+        history.append([loss, *np.asarray(problem.theta(phi))])
+        if not np.isfinite(loss):
+            raise FloatingPointError(f"estimate: the loss is {loss} at {dict(zip(vary, history[-1][1:]))}.")
         if float(jnp.linalg.norm(grad)) <= gtol:
             converged = True
             break

@@ -25,7 +25,9 @@ import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
+from jaxtyping import Array, ArrayLike
 
+from .._misc import is_concrete
 from .._system import StateLayout, StochasticSystem
 from ._dependence import depends_on
 from ._elimination import Elimination, make_elimination
@@ -59,18 +61,13 @@ __all__ = [
 ]
 
 
-def _concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
-
-
-def _inputs(spec, q, qdot=None, pi=None, t=0.0):
+def _inputs(spec, q, qdot, pi=None, t: ArrayLike = 0.0):
     q = jnp.asarray(q)
     if q.shape != (spec.n,):
         raise ValueError(f"q has shape {q.shape}; expected ({spec.n},) for coordinates {spec.coordinates}.")
-    if qdot is not None:
-        qdot = jnp.asarray(qdot, q.dtype)
-        if qdot.shape != (spec.n,):
-            raise ValueError(f"qdot has shape {qdot.shape}; expected ({spec.n},).")
+    qdot = jnp.asarray(qdot, q.dtype)
+    if qdot.shape != (spec.n,):
+        raise ValueError(f"qdot has shape {qdot.shape}; expected ({spec.n},).")
     pi = jnp.zeros(spec.k, q.dtype) if pi is None else jnp.asarray(pi, q.dtype)
     if pi.shape != (spec.k,):
         raise ValueError(f"pi has shape {pi.shape}; expected ({spec.k},) for {spec.random_parameters}.")
@@ -106,19 +103,19 @@ class AbstractForm(eqx.Module):
     # ---------------------------------------------------------------- route-specific
 
     @abc.abstractmethod
-    def _motion(self, t, q, x, pi, p):
+    def _motion(self, t, q, x, pi, p) -> tuple[Array, Array]:
         """``(q̇, ẋ)``: all velocities and the drift of the route's velocity part ``x``."""
 
     @abc.abstractmethod
-    def _noise(self, t, q, x, pi, p):
+    def _noise(self, t, q, x, pi, p) -> Array:
         """``ẋ_V``, shape ``(len(x), l)``: the noise of ``x``."""
 
     @abc.abstractmethod
-    def _velocity(self, t, q, x, pi, p):
+    def _velocity(self, t, q, x, pi, p) -> Array:
         """All velocities ``q̇`` from the route's velocity part ``x``."""
 
     @abc.abstractmethod
-    def _pack(self, q, v, pi, t, p):
+    def _pack(self, q, v, pi, t, p) -> Array:
         """The route's velocity part ``x`` from all velocities ``q̇``."""
 
     @abc.abstractmethod
@@ -162,13 +159,13 @@ class AbstractForm(eqx.Module):
             ("random_parameter",) * spec.k + roles + x_roles,
         )
 
-    def state(self, q, qdot, pi=None, t=0.0):
+    def state(self, q, qdot, pi=None, t: ArrayLike = 0.0):
         """The state ``Z`` of this route for coordinates ``q``, velocities ``q̇`` on the constraints."""
         spec = self.spec
         q, qdot, pi, t = _inputs(spec, q, qdot, pi, t)
         residual = jnp.max(jnp.abs(spec.constraint_residual(q, qdot, pi, t, spec.params)), initial=0.0)
         tol = jnp.sqrt(jnp.finfo(q.dtype).eps) * (1 + jnp.max(jnp.abs(qdot)))
-        if _concrete(residual) and residual > tol:
+        if is_concrete(residual) and residual > tol:
             raise ValueError(
                 f"qdot={np.asarray(qdot).tolist()} violates the constraints (residual {float(residual):.3g}); "
                 "make it consistent, e.g. with mechanics.project_velocity."
@@ -177,7 +174,7 @@ class AbstractForm(eqx.Module):
         parts = [q, self._pack(q, qdot, pi, t, spec.params)]
         return jnp.concatenate([pi, *parts] if spec.k else parts)
 
-    def accelerations(self, q, qdot, pi=None, t=0.0):
+    def accelerations(self, q, qdot, pi=None, t: ArrayLike = 0.0):
         """``q̈ = d q̇(Z)/dt`` (drift part) of all coordinates at ``(q, q̇)`` on the constraints.
 
         ``q̇`` is linear in the route's velocities (or momenta) at given ``q``, so
@@ -191,7 +188,7 @@ class AbstractForm(eqx.Module):
             1
         ]
 
-    def acceleration_noise(self, q, qdot, pi=None, t=0.0):
+    def acceleration_noise(self, q, qdot, pi=None, t: ArrayLike = 0.0):
         """``∂q̇/∂Z b``, shape ``(n, l)``: the accelerations' response to the white noise ``V``."""
         spec = self.spec
         q, qdot, pi, t = _inputs(spec, q, qdot, pi, t)
@@ -244,7 +241,9 @@ class _Field(eqx.Module):
             return jnp.max(jnp.abs(form.spec.constraint_residual(q, v, pi, t, p)), initial=0.0)
         if self.kind == "velocity":
             return v[self.index]
-        return multipliers(form.spec, q, v, pi, t, p, form.stabilization)[1][self.index]  # "multiplier"
+        if not isinstance(form, MultiplierForm):  # "multiplier": only the multipliers route offers them
+            raise ValueError(f"{type(form).__name__} has no observable of kind {self.kind!r}.")
+        return multipliers(form.spec, q, v, pi, t, p, form.stabilization)[1][self.index]
 
 
 def _velocity_names(spec, indices):
@@ -349,14 +348,14 @@ class MultiplierForm(AbstractForm):
     def _extra_observables(self):
         return tuple((f"lambda_{j}", "multiplier", j) for j in range(self.spec.n_ideal + self.spec.n_servo))
 
-    def multipliers(self, q, qdot, pi=None, t=0.0):
+    def multipliers(self, q, qdot, pi=None, t: ArrayLike = 0.0):
         """``λ`` (drift part) at ``(q, q̇)``."""
         spec = self.spec
         q, qdot, pi, t = _inputs(spec, q, qdot, pi, t)
         q = _checked_state(spec, self.elimination, q, pi, t)
         return multipliers(spec, q, qdot, pi, t, spec.params, self.stabilization)[1]
 
-    def reactions(self, q, qdot, pi=None, t=0.0):
+    def reactions(self, q, qdot, pi=None, t: ArrayLike = 0.0):
         """Generalised reaction forces ``Dᵀ λ`` (ideal and servo), drift part."""
         spec = self.spec
         q, qdot, pi, t = _inputs(spec, q, qdot, pi, t)
@@ -386,7 +385,7 @@ class GaussForm(AbstractForm):
     def _velocity_layout(self):
         return _velocity_names(self.spec, range(self.spec.n)), ("velocity",) * self.spec.n
 
-    def compulsion(self, q, qdot, qddot, pi=None, t=0.0):
+    def compulsion(self, q, qdot, qddot, pi=None, t: ArrayLike = 0.0):
         """Gauss's compulsion ``Z = ½ (q̈ − M⁻¹F)ᵀ M (q̈ − M⁻¹F)`` of accelerations ``q̈`` (S1 (2.10))."""
         spec = self.spec
         q, qdot, pi, t = _inputs(spec, q, qdot, pi, t)
@@ -448,7 +447,7 @@ def build(spec: MechanicalSpec, route: str = "reduced", **options) -> Stochastic
     return formulate(spec, route, **options).system()
 
 
-def project_velocity(spec: MechanicalSpec, q, qdot, pi=None, t=0.0):
+def project_velocity(spec: MechanicalSpec, q, qdot, pi=None, t: ArrayLike = 0.0):
     """The velocity on the constraints nearest to ``q̇`` in the kinetic metric.
 
     ``q̇* = q̇ − M⁻¹Bᵀ (B M⁻¹ Bᵀ)⁻¹ (B q̇ + b)`` with ``B q̇ + b = 0`` all velocity rows.

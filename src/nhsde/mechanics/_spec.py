@@ -311,12 +311,14 @@ class MechanicalSpec(eqx.Module):
         """``T(q, q̇, π, t)``."""
         if self.kinetic_energy is not None:
             return self.kinetic_energy(q, v, pi, t, p)
+        assert self.mass_matrix is not None  # exactly one of the two (checked when the spec is made)
         return 0.5 * v @ self.mass_matrix(q, pi, t, p) @ v
 
     def inertia(self, q, pi, t, p):
         """The mass matrix ``∂²T/∂q̇²``."""
         if self.mass_matrix is not None:
             return self.mass_matrix(q, pi, t, p)
+        assert self.kinetic_energy is not None  # exactly one of the two (checked when the spec is made)
         return jax.hessian(self.kinetic_energy, argnums=1)(q, jnp.zeros_like(q), pi, t, p)
 
     def potential_energy(self, q, pi, t, p):
@@ -396,6 +398,8 @@ class MechanicalSpec(eqx.Module):
         return rows @ v + bias
 
     def pi_drift(self, pi, t, p):
+        if self.random_drift is None:  # no random parameters (they need a drift): π is empty
+            return jnp.zeros(self.k, pi.dtype)
         return self.random_drift(pi, t, p)
 
     def pi_diffusion(self, pi, t, p):

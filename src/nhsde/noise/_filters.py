@@ -20,6 +20,7 @@ built this way.
 import abc
 import dataclasses
 from collections.abc import Callable
+from typing import Any, Protocol, cast
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -57,8 +58,8 @@ class OrnsteinUhlenbeck(AbstractShapingFilter, AbstractParameters):
     """
 
     names: tuple[str, ...] = eqx.field(static=True)
-    rate: Array = parameter(default=1.0, lower=0.0, strict=True, doc="γ = 1/correlation time")
-    intensity: Array = parameter(default=1.0, lower=0.0, doc="ν: low-frequency intensity")
+    rate: Array = parameter(default=1.0, lower=0.0, strict=True, per_channel=True, doc="γ = 1/correlation time")
+    intensity: Array = parameter(default=1.0, lower=0.0, per_channel=True, doc="ν: low-frequency intensity")
 
     def __check_init__(self):
         if isinstance(self.names, str) or not isinstance(self.names, tuple) or not self.names:
@@ -108,6 +109,10 @@ class ShapingFilter(AbstractShapingFilter):
         return dataclasses.replace(self, params=self.params.replace(**changes))
 
 
+class _Replaceable(Protocol):
+    def replace(self, **changes) -> Any: ...
+
+
 class FilteredParameters(eqx.Module):
     """Parameters of a system driven through a shaping filter: the system's and the filter's."""
 
@@ -116,13 +121,13 @@ class FilteredParameters(eqx.Module):
 
     def replace(self, **changes):
         """Change parameters by name; names of the system's parameters go to the system, the rest to the filter."""
-        system_names = (
-            {f.name for f in dataclasses.fields(self.system)} if dataclasses.is_dataclass(self.system) else set()
-        )
+        params = self.system
+        system_names = {f.name for f in dataclasses.fields(params)} if dataclasses.is_dataclass(params) else set()
         mine = {k: v for k, v in changes.items() if k in system_names}
         rest = {k: v for k, v in changes.items() if k not in system_names}
         system = self.system.replace(**mine) if mine else self.system
-        filter_ = self.filter.replace(**rest) if rest else self.filter
+        # a filter is its own parameters: OrnsteinUhlenbeck (AbstractParameters) and ShapingFilter define replace
+        filter_ = cast(_Replaceable, self.filter).replace(**rest) if rest else self.filter
         return FilteredParameters(system, filter_)
 
 

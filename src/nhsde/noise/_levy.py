@@ -93,8 +93,8 @@ class AbstractJumpLaw(AbstractParameters):
 class NormalJumps(AbstractJumpLaw):
     """Jumps ``c ~ N(mean, std²)``; the sum of ``N`` of them is ``N·mean + √N·std·Z`` exactly."""
 
-    mean: Array = parameter(default=0.0, doc="mean jump size")
-    std: Array = parameter(default=1.0, lower=0.0, doc="standard deviation of the jump size")
+    mean: Array = parameter(default=0.0, per_channel=True, doc="mean jump size")
+    std: Array = parameter(default=1.0, lower=0.0, per_channel=True, doc="standard deviation of the jump size")
 
     def moment(self, k):
         m, s = self.mean, self.std
@@ -115,8 +115,10 @@ class ParetoJumps(AbstractJumpLaw):
     ``E|c|^k = scale^k tail/(tail − k)`` for ``k < tail``; finite variance needs ``tail > 2``.
     """
 
-    scale: Array = parameter(default=1.0, lower=0.0, doc="smallest jump size")
-    tail: Array = parameter(default=3.0, lower=2.0, strict=True, doc="tail index; > 2 for finite variance")
+    scale: Array = parameter(default=1.0, lower=0.0, per_channel=True, doc="smallest jump size")
+    tail: Array = parameter(
+        default=3.0, lower=2.0, strict=True, per_channel=True, doc="tail index; > 2 for finite variance"
+    )
 
     def __check_init__(self):
         try:
@@ -155,7 +157,7 @@ class CompoundPoisson(AbstractDriver, AbstractParameters):
     """
 
     law: AbstractJumpLaw
-    intensity: Array = parameter(default=1.0, lower=0.0, doc="jump rate λ per unit time and channel")
+    intensity: Array = parameter(default=1.0, lower=0.0, per_channel=True, doc="jump rate λ per unit time and channel")
     max_jumps: int = eqx.field(static=True, default=12)
 
     continuous: ClassVar[bool] = False

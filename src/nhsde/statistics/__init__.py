@@ -1,11 +1,23 @@
-"""Statistics of ensembles: drift of the dependent coordinates, stationary moments."""
+"""Statistics of ensembles and of the moment equations: drift of the dependent coordinates, stationary laws.
+
+- From the moments of an ensemble (:func:`~nhsde.simulate`, or the moment
+  equations): :func:`drift_statistics` (S0 (6.7)), :func:`effective_diffusion`,
+  :func:`stationary_moments`; from its paths: :func:`green_kubo`.
+- The normal approximation (S0 §6): :func:`normal_approximation` over time,
+  :func:`stationary_drift` in the stationary regime.
+- Exact stationary densities (S0 Statements 1–2): :func:`stationary_density`.
+- The Fokker–Planck equation on a grid (1 and 2 components):
+  :func:`stationary_fokker_planck`, :func:`fokker_planck`.
+"""
 
 from ._drift import (
     DriftStatistics as DriftStatistics,
+    GreenKubo as GreenKubo,
     StationaryMoments as StationaryMoments,
     drift_statistics as drift_statistics,
     effective_diffusion as effective_diffusion,
     fluctuation_drift as fluctuation_drift,
+    green_kubo as green_kubo,
     stationary_moments as stationary_moments,
     systematic_drift as systematic_drift,
 )
@@ -14,11 +26,6 @@ from ._fokker_planck import (
     fokker_planck as fokker_planck,
     stationary_fokker_planck as stationary_fokker_planck,
 )
-from ._moments import (
-    GreenKubo as GreenKubo,
-    StationaryDrift as StationaryDrift,
-    green_kubo as green_kubo,
-    normal_approximation as normal_approximation,
-    stationary_drift as stationary_drift,
-)
+from ._normal_approximation import normal_approximation as normal_approximation
 from ._stationary import StationaryDensity as StationaryDensity, stationary_density as stationary_density
+from ._stationary_drift import StationaryDrift as StationaryDrift, stationary_drift as stationary_drift

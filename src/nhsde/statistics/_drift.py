@@ -1,39 +1,51 @@
-"""Drift statistics of the dependent coordinates q'' (S0 §6, (6.6)–(6.7)).
+"""Statistics of an ensemble: the drift of the dependent coordinates q'' (S0 §6, (6.6)–(6.7)), stationary moments.
 
 In a Chaplygin system the dependent coordinates have no restoring force:
 ``q''(t) = ∫ Λ dτ`` (6.6).  Their mean ``m_{q''}(t)`` is the *systematic drift*
-and their covariance ``K_{q''}(t)`` the *fluctuation drift* (6.7).  All
-functions here are differentiable in the system's parameters through
-:func:`~nhsde.simulate`.
+and their covariance ``K_{q''}(t)`` the *fluctuation drift* (6.7); their
+effective diffusion is the slope of ``K_{q''}`` or, by Green–Kubo, the integral
+of the velocity autocorrelation of the paths (:func:`green_kubo`).  The
+moments come from :func:`~nhsde.simulate` (with Monte-Carlo standard errors)
+or from the moment equations (:func:`~nhsde.statistics.normal_approximation`,
+without); all functions here are differentiable in the system's parameters
+through either.
 """
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
-from .._simulate import Ensemble
+from .._ensemble import AbstractMoments, Ensemble
+from .._misc import check_number
+from .._system import StochasticSystem
 
 __all__ = [
     "DriftStatistics",
+    "GreenKubo",
     "StationaryMoments",
     "drift_statistics",
     "effective_diffusion",
     "fluctuation_drift",
+    "green_kubo",
     "stationary_moments",
     "systematic_drift",
 ]
 
 
 class DriftStatistics(eqx.Module):
-    """``m_{q''}(t)`` and ``K_{q''}(t)`` with their Monte-Carlo standard errors."""
+    """``m_{q''}(t)`` and ``K_{q''}(t)`` with their Monte-Carlo standard errors (``None`` for moments without)."""
 
     ts: Float[Array, " n"]
     systematic: Float[Array, "n k"]
-    systematic_se: Float[Array, "n k"]
+    systematic_se: Float[Array, "n k"] | None
     fluctuation: Float[Array, "n k k"]
-    fluctuation_se: Float[Array, "n k k"]
+    fluctuation_se: Float[Array, "n k k"] | None
     names: tuple[str, ...] = eqx.field(static=True)
 
 
@@ -45,11 +57,11 @@ class StationaryMoments(eqx.Module):
     names: tuple[str, ...] = eqx.field(static=True)
 
 
-def _names_with_role(ens: Ensemble, role: str) -> tuple[str, ...]:
+def _names_with_role(ens: AbstractMoments, role: str) -> tuple[str, ...]:
     return tuple(n for n, r in zip(ens.names, ens.roles) if r == role)
 
 
-def drift_statistics(ens: Ensemble) -> DriftStatistics:
+def drift_statistics(ens: AbstractMoments) -> DriftStatistics:
     """Systematic and fluctuation drift (6.7) of the saved dependent coordinates."""
     names = _names_with_role(ens, "dependent_coordinate")
     if not names:
@@ -61,17 +73,17 @@ def drift_statistics(ens: Ensemble) -> DriftStatistics:
     return DriftStatistics(ens.ts, mean, mean_se, cov, cov_se, names)
 
 
-def systematic_drift(ens: Ensemble) -> Float[Array, "n k"]:
+def systematic_drift(ens: AbstractMoments) -> Float[Array, "n k"]:
     """``m_{q''}(t)`` at the save times."""
     return drift_statistics(ens).systematic
 
 
-def fluctuation_drift(ens: Ensemble) -> Float[Array, "n k k"]:
+def fluctuation_drift(ens: AbstractMoments) -> Float[Array, "n k k"]:
     """``K_{q''}(t)`` at the save times."""
     return drift_statistics(ens).fluctuation
 
 
-def effective_diffusion(ens: Ensemble, t_from: float | None = None) -> Float[Array, "k k"]:
+def effective_diffusion(ens: AbstractMoments, t_from: float | None = None) -> Float[Array, "k k"]:
     """``D = ½ dK_{q''}/dt``, the least-squares slope over save times ``t ≥ t_from``.
 
     In a stationary regime ``K_{q''}(t) ≈ 2 D t + const`` (Green–Kubo); ``t_from``
@@ -79,17 +91,17 @@ def effective_diffusion(ens: Ensemble, t_from: float | None = None) -> Float[Arr
     """
     stats = drift_statistics(ens)
     ts = ens.ts
-    t_from = ts[-1] / 2 + ts[0] / 2 if t_from is None else t_from
-    w = (ts >= t_from).astype(ts.dtype)
+    start = ts[-1] / 2 + ts[0] / 2 if t_from is None else t_from
+    w = (ts >= start).astype(ts.dtype)
     if int(jnp.sum(w)) < 2:
-        raise ValueError(f"t_from={t_from}: fewer than two save times at or after it; save more points.")
+        raise ValueError(f"t_from={start}: fewer than two save times at or after it; save more points.")
     tbar = jnp.sum(w * ts) / jnp.sum(w)
     dt = w * (ts - tbar)
     slope = jnp.einsum("n,nij->ij", dt, stats.fluctuation) / jnp.sum(dt * (ts - tbar))
     return slope / 2
 
 
-def stationary_moments(ens: Ensemble, t_from: float) -> StationaryMoments:
+def stationary_moments(ens: AbstractMoments, t_from: float) -> StationaryMoments:
     """Mean and covariance of the non-drifting saved components, averaged over ``t ≥ t_from``."""
     names = tuple(n for n, r in zip(ens.names, ens.roles) if r != "dependent_coordinate")
     if not names:
@@ -100,3 +112,72 @@ def stationary_moments(ens: Ensemble, t_from: float) -> StationaryMoments:
     mean, cov, _, _ = ens.select(names)
     w = w / jnp.sum(w)
     return StationaryMoments(jnp.einsum("n,ni->i", w, mean), jnp.einsum("n,nij->ij", w, cov), names)
+
+
+class GreenKubo(eqx.Module):
+    """Green–Kubo diffusion ``D = ∫₀^{τ_max} sym C(τ) dτ`` of the dependent coordinates from paths.
+
+    ``autocorrelation[j] = C(τ_j) = E[Λ°(t+τ_j) Λ°(t)ᵀ]`` averaged over paths and
+    time origins; ``diffusion_se`` is the Monte-Carlo standard error over paths.
+    """
+
+    lags: Float[Array, " n"]
+    autocorrelation: Float[Array, "n k k"]
+    diffusion: Float[Array, "k k"]
+    diffusion_se: Float[Array, "k k"]
+    names: tuple[str, ...] = eqx.field(static=True)
+
+
+def green_kubo(system: StochasticSystem, ens: Ensemble, *, t_from: float, max_lag: float) -> GreenKubo:
+    """Green–Kubo diffusion from the velocity autocorrelation of Monte-Carlo paths.
+
+    ``ens`` must hold the whole state per path (``Save(paths=True)``); the
+    velocities ``Λ = q̇''`` (the drift's ``q''`` rows) at the save times
+    ``t ≥ t_from`` give ``C(τ)`` for lags up to ``max_lag`` (trapezoid rule).
+    """
+    if ens.paths is None or ens.failed is None or ens.names != system.layout.names:
+        raise ValueError(
+            f"green_kubo needs the whole state {system.layout.names} per path: simulate with Save(paths=True)."
+        )
+    dep = np.asarray(system.layout.indices("dependent_coordinate"), dtype=int)
+    if dep.size == 0:
+        raise ValueError(f"the state {system.layout.names} has no dependent coordinates.")
+    ts = np.asarray(ens.ts)
+    spacing = float(ts[1] - ts[0])
+    window = np.flatnonzero(ts >= t_from - 1e-9 * spacing)
+    n_lag = round(check_number("max_lag", max_lag, positive=True) / spacing)
+    if n_lag < 1 or len(window) <= n_lag:
+        raise ValueError(
+            f"max_lag={max_lag}: need at least one save spacing ({spacing:g}) and a window t ≥ t_from={t_from} "
+            f"longer than max_lag ({len(window)} save times); save more points or run longer."
+        )
+    ok = ~np.asarray(ens.failed)
+    y = jnp.asarray(ens.paths)[ok][:, window]  # (p, n, d)
+    params = system.params
+    vel = jax.vmap(jax.vmap(lambda t, z: system.drift(t, z, params)[dep], in_axes=(0, 0)), in_axes=(None, 0))(
+        jnp.asarray(ts[window], y.dtype), y
+    )
+    vel = vel - jnp.mean(vel, axis=0)
+    n_origin = len(window) - n_lag
+
+    def one_path(v):  # (lags, k, k): C_p(τ_j) averaged over time origins
+        return (
+            jax.vmap(lambda j: jnp.einsum("nk,nl->kl", jax.lax.dynamic_slice_in_dim(v, j, n_origin), v[:n_origin]))(
+                jnp.arange(n_lag + 1)
+            )
+            / n_origin
+        )
+
+    per_path = jax.jit(jax.vmap(one_path))(vel)  # (p, lags, k, k)
+    w = np.full(n_lag + 1, spacing)
+    w[0] = w[-1] = spacing / 2
+    d_path = jnp.einsum("j,pjkl->pkl", jnp.asarray(w, y.dtype), per_path)
+    d_path = 0.5 * (d_path + jnp.swapaxes(d_path, 1, 2))
+    n = d_path.shape[0]
+    return GreenKubo(
+        lags=jnp.asarray(spacing * np.arange(n_lag + 1), y.dtype),
+        autocorrelation=jnp.mean(per_path, axis=0),
+        diffusion=jnp.mean(d_path, axis=0),
+        diffusion_se=jnp.std(d_path, axis=0, ddof=1) / math.sqrt(n),
+        names=tuple(system.layout.names[i] for i in dep),
+    )

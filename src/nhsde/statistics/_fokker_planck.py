@@ -29,7 +29,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from jaxtyping import Array, Float
 
-from .._simulate import _number, _steps
+from .._misc import check_number, check_steps
 from .._system import StochasticSystem
 from ._drift import StationaryMoments
 
@@ -234,22 +234,23 @@ def fokker_planck(
     Crank–Nicolson with step ``dt`` (the first step as two backward-Euler half steps).
     """
     system, axes = _grid(system, bounds, n)
-    t0, t1 = _number("t0", t0), _number("t1", t1)
+    t0, t1 = check_number("t0", t0), check_number("t1", t1)
     if t1 <= t0:
         raise ValueError(f"t1={t1} must be > t0={t0}.")
-    n_steps = _steps("dt", t1 - t0, _number("dt", dt, positive=True))
-    save_n = _number("save_n", save_n, integer=True)
+    n_steps = check_steps("dt", t1 - t0, check_number("dt", dt, positive=True))
+    save_n = int(check_number("save_n", save_n, integer=True))
     if save_n < 2 or n_steps % (save_n - 1):
         raise ValueError(f"save_n={save_n}: save_n − 1 must be ≥ 1 and divide the {n_steps} steps.")
     _check_autonomous(system, axes, t0)
     m = _operator(system, axes, t0)
     h = (t1 - t0) / n_steps
-    # backward Euler over h/2 and Crank–Nicolson over h share the matrix I − (h/2) M
-    lu = spla.splu((sp.identity(m.shape[0], format="csc") - (h / 2) * m).tocsc())
     shape = tuple(len(a) for a in axes)
+    size = int(np.prod(shape))  # cells: the order of M
+    # backward Euler over h/2 and Crank–Nicolson over h share the matrix I − (h/2) M
+    lu = spla.splu((sp.identity(size, format="csc") - (h / 2) * m).tocsc())
     pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1)
     f = np.asarray(initial(jnp.asarray(pts)), np.float64).reshape(-1)
-    if f.shape[0] != m.shape[0] or not np.all(np.isfinite(f)) or np.any(f < 0):
+    if f.shape[0] != size or not np.all(np.isfinite(f)) or np.any(f < 0):
         raise ValueError("initial must map grid points (..., k) to finite non-negative density values.")
     saved = [f]
     per_save = n_steps // (save_n - 1)

@@ -18,7 +18,7 @@ Then ``f₁(x) = c N(x) exp(−α H(x))`` is a stationary density if
    (the antisymmetric part of the friction must conserve it);
 5. ``∫ N exp(−αH) dx < ∞`` (S0 condition 3).
 
-:func:`stationary_density` checks 1–5 numerically at test points and raises a
+:func:`stationary_density` checks 1–5 numerically at test points, one function each, and raises a
 ``ValueError`` naming the first condition that fails.  In low dimension
 (``len(x) ≤ 3``) ``c``, the mean and the covariance come from tensor
 Gauss–Legendre quadrature on ``x = c₀ + s tan θ``, checked for convergence.
@@ -29,6 +29,7 @@ Gauss–Legendre quadrature on ``x = c₀ + s tan θ``, checked for convergence.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import NamedTuple, NoReturn
 
 import equinox as eqx
 import jax
@@ -36,8 +37,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, PyTree
 
+from .._brownian import Wiener
 from .._system import StochasticSystem
-from ..noise._brownian import Wiener
 from ._drift import StationaryMoments
 
 __all__ = ["StationaryDensity", "stationary_density"]
@@ -83,7 +84,7 @@ class StationaryDensity(eqx.Module):
 
     def moments(self) -> StationaryMoments:
         """Mean and covariance of ``f₁`` (by quadrature), as the Monte-Carlo :class:`StationaryMoments`."""
-        if self.mean is None:
+        if self.mean is None or self.cov is None:
             raise ValueError(f"moments by quadrature need ≤ {MAX_QUADRATURE_DIM} dimensions (here {len(self.names)}).")
         return StationaryMoments(self.mean, self.cov, self.names)
 
@@ -93,8 +94,18 @@ def _log_weight(hamiltonian, invariant_density, params, alpha, x):
     return log_n - alpha * hamiltonian(x, params)
 
 
-def _refuse(condition: str, detail: str):
+def _refuse(condition: str, detail: str) -> NoReturn:
     raise ValueError(f"stationary_density: {condition} fails: {detail}.")
+
+
+class _OnX(NamedTuple):
+    """The system's coefficients as functions of the components ``x`` (the dependent coordinates at 0)."""
+
+    f: Callable  # the drift
+    f0: Callable  # the drift with friction and noise off
+    diff: Callable  # D = bbᵀ
+    log_n: Callable  # log N
+    h: Callable  # H
 
 
 def stationary_density(
@@ -117,16 +128,7 @@ def stationary_density(
     - ``friction``, ``noise``: names of the parameters that switch friction and noise off at 0.
     - ``points``: test points ``(n, k)`` for the conditions (default: 64 standard normal points).
     """
-    if not isinstance(system, StochasticSystem):
-        raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem.")
-    if not isinstance(system.noise, Wiener):
-        _refuse(
-            "normal system (Wiener noise)",
-            f"the system is driven by {type(system.noise).__name__}; Statements 1–2 hold for Wiener noise only "
-            "(use nhsde.statistics.normal_approximation)",
-        )
-    if system.interpretation != "ito":
-        system = system.converted("ito")
+    system = _normal_ito_system(system)
     layout = system.layout
     x_idx = np.asarray([i for i, r in enumerate(layout.roles) if r != "dependent_coordinate"])
     dep = np.asarray(layout.indices("dependent_coordinate"), dtype=int)
@@ -144,9 +146,44 @@ def stationary_density(
     pts = jax.random.normal(jax.random.key(0), (64, k), dtype) if points is None else jnp.asarray(points, dtype)
     if pts.ndim != 2 or pts.shape[1] != k:
         raise ValueError(f"points has shape {pts.shape}; expected (n, {k}) over {names}.")
+    on_x = _on_x(system, x_idx, params, params0, hamiltonian, invariant_density)
+
+    _check_decoupling(system, x_idx, dep, pts, rtol)  # 1.
+    grad_h, f0_pts, jac_nf0, alphas = _at_points(on_x, pts)
+    _check_first_integral(grad_h, f0_pts, pts, rtol)  # 2.
+    _check_invariant_density(jac_nf0, pts, rtol, statement=1 if invariant_density is None else 2)  # 3.
+    alpha = _friction_exponent(on_x, alphas, pts, rtol)  # 4.
+
+    def log_rho(x):
+        return on_x.log_n(x) - alpha * on_x.h(x)
+
+    _check_integrability(log_rho, k, dtype)  # 5.
+    log_c = mean = cov = None
+    if k <= MAX_QUADRATURE_DIM:
+        log_c, mean, cov = _quadrature(log_rho, k, dtype, quadrature_nodes)
+    return StationaryDensity(alpha, log_c, mean, cov, params, hamiltonian, invariant_density, names)
+
+
+def _normal_ito_system(system) -> StochasticSystem:
+    """``system`` in Itô form; a normal system (Wiener noise) is the first part of condition 1."""
+    if not isinstance(system, StochasticSystem):
+        raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem.")
+    if not isinstance(system.noise, Wiener):
+        _refuse(
+            "normal system (Wiener noise)",
+            f"the system is driven by {type(system.noise).__name__}; Statements 1–2 hold for Wiener noise only "
+            "(use nhsde.statistics.normal_approximation)",
+        )
+    if system.interpretation != "ito":
+        system = system.converted("ito")
+    return system
+
+
+def _on_x(system, x_idx, params, params0, hamiltonian, invariant_density) -> _OnX:
+    size = system.layout.size
 
     def full(x):
-        return jnp.zeros(layout.size, x.dtype).at[x_idx].set(x)
+        return jnp.zeros(size, x.dtype).at[x_idx].set(x)
 
     def f(x):
         return system.drift(0.0, full(x), params)[x_idx]
@@ -164,37 +201,60 @@ def stationary_density(
     def h(x):
         return hamiltonian(x, params)
 
-    # 1. Chaplygin decoupling: x does not feel q''.
-    if dep.size:
+    return _OnX(f, f0, diff, log_n, h)
 
-        def x_part(z):
-            return system.drift(0.0, z, params)[x_idx], system.diffusion(0.0, z, params)[x_idx]
 
-        jac = jax.jit(jax.vmap(lambda x: jax.jacfwd(x_part)(full(x))))(pts)
-        coupling = max(float(jnp.max(jnp.abs(j[..., dep]))) for j in jac)
-        scale = max(float(jnp.max(jnp.abs(j))) for j in jac)
-        if coupling > rtol * scale:
-            _refuse(
-                "Chaplygin decoupling",
-                f"the drift or noise of {names} depends on {tuple(layout.names[i] for i in dep)}",
-            )
+def _at_points(on_x: _OnX, pts):
+    """``∇H``, ``f₀``, ``∂(N f₀)/∂x`` and the flux-balance ``α`` (condition 4) at each test point, in one program."""
 
     def n_f0(x):
-        return jnp.exp(log_n(x)) * f0(x)
+        return jnp.exp(on_x.log_n(x)) * on_x.f0(x)
 
     def alpha_at(x):
-        gh = jax.grad(h)(x)
-        d = diff(x)
-        div_d = jnp.trace(jax.jacfwd(diff)(x), axis1=1, axis2=2)
-        rest = f(x) - f0(x) - 0.5 * div_d - 0.5 * d @ jax.grad(log_n)(x)
+        gh = jax.grad(on_x.h)(x)
+        d = on_x.diff(x)
+        div_d = jnp.trace(jax.jacfwd(on_x.diff)(x), axis1=1, axis2=2)
+        rest = on_x.f(x) - on_x.f0(x) - 0.5 * div_d - 0.5 * d @ jax.grad(on_x.log_n)(x)
         return -2.0 * (rest @ gh) / (gh @ d @ gh)
 
     @jax.jit
     def conditions(pts):
-        return jax.vmap(jax.grad(h))(pts), jax.vmap(f0)(pts), jax.vmap(jax.jacfwd(n_f0))(pts), jax.vmap(alpha_at)(pts)
+        return (
+            jax.vmap(jax.grad(on_x.h))(pts),
+            jax.vmap(on_x.f0)(pts),
+            jax.vmap(jax.jacfwd(n_f0))(pts),
+            jax.vmap(alpha_at)(pts),
+        )
 
-    grad_h, f0_pts, jac_nf0, alphas = conditions(pts)
-    # 2. H is a first integral of the frictionless, noiseless flow.
+    return conditions(pts)
+
+
+def _check_decoupling(system, x_idx, dep, pts, rtol) -> None:
+    """Condition 1 (Chaplygin decoupling): the drift and noise of ``x`` do not depend on ``q''``."""
+    if not dep.size:
+        return
+    params, size = system.params, system.layout.size
+
+    def x_part(z):
+        return system.drift(0.0, z, params)[x_idx], system.diffusion(0.0, z, params)[x_idx]
+
+    def full(x):
+        return jnp.zeros(size, x.dtype).at[x_idx].set(x)
+
+    jac = jax.jit(jax.vmap(lambda x: jax.jacfwd(x_part)(full(x))))(pts)
+    coupling = max(float(jnp.max(jnp.abs(j[..., dep]))) for j in jac)
+    scale = max(float(jnp.max(jnp.abs(j))) for j in jac)
+    if coupling > rtol * scale:
+        layout = system.layout
+        _refuse(
+            "Chaplygin decoupling",
+            f"the drift or noise of {tuple(layout.names[i] for i in x_idx)} depends on "
+            f"{tuple(layout.names[i] for i in dep)}",
+        )
+
+
+def _check_first_integral(grad_h, f0_pts, pts, rtol) -> None:
+    """Condition 2: ``H`` is a first integral of the frictionless, noiseless flow, ``f₀·∇H = 0``."""
     power = jnp.sum(f0_pts * grad_h, axis=1)
     ref = jnp.linalg.norm(f0_pts, axis=1) * jnp.linalg.norm(grad_h, axis=1)
     if not bool(jnp.all(jnp.abs(power) <= rtol * ref)):
@@ -204,18 +264,23 @@ def stationary_density(
             f"f₀·∇H = {float(power[worst]):.3g} at x = {pts[worst]}",
         )
 
-    # 3. N is invariant for the frictionless, noiseless flow.
+
+def _check_invariant_density(jac_nf0, pts, rtol, statement: int) -> None:
+    """Condition 3: ``N`` is an invariant density of the frictionless, noiseless flow, ``∇·(N f₀) = 0``."""
     div = jnp.trace(jac_nf0, axis1=1, axis2=2)
     ref = jnp.sqrt(jnp.sum(jac_nf0**2, axis=(1, 2)))
     if not bool(jnp.all(jnp.abs(div) <= rtol * ref)):
         worst = int(jnp.argmax(jnp.abs(div) - rtol * ref))
-        which = "N = 1 (Liouville, Statement 1)" if invariant_density is None else "the given N (Statement 2)"
+        which = "N = 1 (Liouville, Statement 1)" if statement == 1 else "the given N (Statement 2)"
         _refuse(
             "invariant measure of the frictionless, noiseless flow",
             f"{which} is not invariant: ∇·(N f₀) = {float(div[worst]):.3g} at x = {pts[worst]}",
         )
 
-    # 4. Friction proportional to bbᵀ: α from the flux balance, constant and positive.
+
+def _friction_exponent(on_x: _OnX, alphas, pts, rtol) -> Array:
+    """Condition 4, friction proportional to ``bbᵀ``: the flux-balance ``α`` at the test points is one positive
+    constant, and ``N e^{−αH}`` solves the stationary Fokker–Planck equation; returns ``α``."""
     alphas = alphas[jnp.isfinite(alphas)]
     if alphas.size == 0:
         _refuse(
@@ -233,13 +298,13 @@ def stationary_density(
         )
 
     def log_rho(x):
-        return log_n(x) - alpha * h(x)
+        return on_x.log_n(x) - alpha * on_x.h(x)
 
     def fpk_terms(x):
         g, hess = jax.grad(log_rho)(x), jax.hessian(log_rho)(x)
-        fx, jf = f(x), jax.jacfwd(f)(x)
-        d, dd = diff(x), jax.jacfwd(diff)(x)  # dd[i, j, l] = ∂_l D_ij
-        ddd = jax.jacfwd(jax.jacfwd(diff))(x)
+        fx, jf = on_x.f(x), jax.jacfwd(on_x.f)(x)
+        d, dd = on_x.diff(x), jax.jacfwd(on_x.diff)(x)  # dd[i, j, l] = ∂_l D_ij
+        ddd = jax.jacfwd(jax.jacfwd(on_x.diff))(x)
         return jnp.stack(
             [
                 -jnp.trace(jf),
@@ -261,17 +326,12 @@ def stationary_density(
             f"the stationary Fokker–Planck residual of N e^{{−αH}} is {float(residual[worst]):.3g} "
             f"(terms of size {float(ref[worst]):.3g}) at x = {pts[worst]}",
         )
-
-    # 5. Integrability along rays, then quadrature.
-    _check_rays(log_rho, k, dtype)
-    log_c = mean = cov = None
-    if k <= MAX_QUADRATURE_DIM:
-        log_c, mean, cov = _quadrature(log_rho, k, dtype, quadrature_nodes)
-    return StationaryDensity(alpha, log_c, mean, cov, params, hamiltonian, invariant_density, names)
+    return alpha
 
 
-def _check_rays(log_rho, k, dtype):
-    """``log ρ`` must fall by more than ``(k + 1) log 2`` per doubling of the radius, along every test ray."""
+def _check_integrability(log_rho, k, dtype) -> None:
+    """Condition 5, ``∫ N exp(−αH) dx < ∞``: ``log ρ`` must fall by more than ``(k + 1) log 2`` per doubling of
+    the radius, along every test ray."""
     dirs = np.concatenate([np.eye(k), -np.eye(k), np.random.default_rng(0).normal(size=(16, k))])
     dirs = jnp.asarray(dirs / np.linalg.norm(dirs, axis=1, keepdims=True), dtype)
     radii = jnp.asarray(2.0 ** np.arange(0, 13), dtype)

@@ -1,0 +1,367 @@
+"""The ``nhsde`` command: ``scenes``, ``simulate SCENE``, ``simulate --config``, ``fit --config``.
+
+Both ``simulate`` modes write the same netCDF run file (``format = "nhsde-run"``,
+see :func:`~nhsde.runs.run`); ``nhsde simulate SCENE --out FILE`` adds the
+forward-mode derivatives ``d_mean_d_eps``, ``d_mean_d_nu``, ``d_cov_d_eps``,
+``d_cov_d_nu`` over ``time × name`` (``× name2``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import re
+import sys
+from pathlib import Path
+from typing import cast
+
+import numpy as np
+
+__all__ = ["build_parser", "main"]
+
+RUN_EXAMPLE = """\
+a run file (TOML; every key is checked, unknown keys are errors):
+
+  scene = "ball-on-vibrating-plane"   # see `nhsde scenes`
+  seed = 0                            # the key: jax.random.key(seed)
+  precision = "float64"               # or "float32"
+
+  [options]                           # the scene's flags
+  drift = true
+
+  [parameters]                        # unnamed parameters keep their defaults
+  eps = 0.8
+  nu = 1.5
+
+  [initial_state]                     # optional: components of the state
+  u_x = 0.0
+
+  [solver]
+  name = "sra1"                       # euler, milstein, heun, heun2, sra1, ...
+  dt = 0.01
+  t0 = 0.0
+  t1 = 10.0
+
+  [paths]
+  n = 100000
+  chunk = 8192                        # paths per piece written (a multiple of 64)
+
+  [statistics]
+  save = ["x", "y"]                   # default: the whole state
+  save_points = 11
+  keep_paths = false                  # true stores every path (needed to fit with full covariances)
+
+Run it again after an interruption to resume; the result is the same as an uninterrupted run.
+"""
+
+FIT_EXAMPLE = """\
+a fit file: the run-file keys scene, seed (the model's key: not the data's), precision,
+[options], [parameters] (start values), [initial_state], [solver] (name, dt), [paths] (n: model
+paths), [statistics] (save: the components to fit, default all), and
+
+  [fit]
+  data = "run.nc"                     # a run file, relative to the fit file
+  vary = ["eps", "nu"]
+  max_steps = 100
+"""
+
+_SCENE_DEFAULTS = {"paths": 4096, "t1": 10.0, "dt": 0.01, "solver": "euler", "seed": 0, "save_points": 11}
+
+# run-file keys → the options of `nhsde simulate SCENE` that set them
+_FLAGS = {
+    "paths.n": "--paths",
+    "solver.t1": "--t1",
+    "solver.dt": "--dt",
+    "solver.name": "--solver",
+    "statistics.save_points": "--save-points",
+    "seed": "--seed",
+}
+_FLAG_KEYS = re.compile(r"(?<![\w.])(" + "|".join(map(re.escape, _FLAGS)) + r"|parameters\.(\w+))( = )?")
+
+
+def _as_flags(message: str) -> str:
+    """A configuration error in the words of the command line: ``paths.n = 0`` → ``--paths 0``."""
+    message = re.sub(r"^parameters: ", "--set: ", message)
+
+    def flag(m):
+        name = f"--set {m.group(2)}" if m.group(2) else _FLAGS[m.group(1)]
+        return name + (" " if m.group(3) else "")
+
+    return _FLAG_KEYS.sub(flag, message)
+
+
+def _fmt(mean, se) -> str:
+    return f"{float(mean): .6g} ± {float(se):.2g}"
+
+
+def _progress_meter(args):
+    import diffrax as dfx
+
+    return dfx.TqdmProgressMeter() if args.progress else None
+
+
+def _cmd_scenes(args) -> int:
+    from ..scenes import SCENES
+
+    for name, cls in SCENES.items():
+        print(f"{name}: {cls.description()}")
+        for pname, default, allowed, pdoc in cls.Parameters.describe():
+            print(f"    {pname:<14} default {float(cast(float, default)):<8g} {allowed:<18} {pdoc}")
+    return 0
+
+
+def _parse_set(items) -> dict[str, float]:
+    out = {}
+    for item in items:
+        if "=" not in item:
+            raise SystemExit(f"--set {item!r}: expected NAME=VALUE, e.g. --set eps=0.5.")
+        name, value = item.split("=", 1)
+        try:
+            out[name] = float(value)
+        except ValueError:
+            raise SystemExit(f"--set {name}={value!r}: not a number.") from None
+    return out
+
+
+def _scene_config(args):
+    """The run configuration of ``nhsde simulate SCENE``'s options: one piece of all the paths."""
+    from ..scenes import get_scene
+    from ._config import ConfigError, RunConfig
+
+    try:
+        get_scene(args.scene)
+    except ValueError as e:
+        raise SystemExit(f"nhsde simulate: {e}") from None
+    raw = {
+        "scene": args.scene,
+        "seed": args.seed,
+        "precision": "float64" if args.x64 else "float32",
+        "parameters": _parse_set(args.set),
+        "solver": {"name": args.solver, "dt": args.dt, "t1": args.t1},
+        "paths": {"n": args.paths, "chunk": 64 * max(1, math.ceil(args.paths / 64))},
+        "statistics": {"save_points": args.save_points},
+    }
+    try:
+        return RunConfig.from_dict(raw)
+    except ConfigError as e:
+        raise SystemExit(f"nhsde simulate: {_as_flags(str(e))}") from None
+
+
+def _cmd_simulate_scene(args) -> int:
+    """Simulate a scene, print its statistics at ``t1`` with their ``eps``/``nu`` derivatives, save with ``--out``."""
+    import jax
+    import jax.numpy as jnp
+
+    from .. import statistics
+    from .._ensemble import Save, SimulationError
+    from .._simulate import simulate
+    from ..scenes import ball_covariances
+    from ._store import Pieces, dataset, provenance, write
+
+    for name, default in _SCENE_DEFAULTS.items():
+        if getattr(args, name) is None:
+            setattr(args, name, default)
+    jax.config.update("jax_enable_x64", True)  # float64 sums; --x64 chooses the precision of the paths
+    config = _scene_config(args)
+    built = config.build()
+    d = config.data
+
+    def statistics_at(eps, nu):
+        ens = simulate(
+            built.system.replace_params(eps=eps, nu=nu),
+            built.y0,
+            built.key,
+            n_paths=args.paths,
+            t1=args.t1,
+            dt=args.dt,
+            solver=args.solver,
+            save=Save(n=args.save_points),
+            on_failure="exclude",
+            progress_meter=_progress_meter(args),
+        )
+        return (ens.mean, ens.cov), ens
+
+    p = built.system.params
+    # at ν = 0 paths scale like √ν: the ν-derivative does not exist and is reported as nan
+    argnums = (0, 1) if float(p.nu) > 0 else (0,)
+    try:
+        (d_mean, d_cov), ens = jax.jacfwd(statistics_at, argnums=argnums, has_aux=True)(p.eps, p.nu)
+    except (ValueError, TypeError, SimulationError) as e:
+        raise SystemExit(f"nhsde simulate: {e}") from None
+    if len(argnums) == 1:
+        d_mean, d_cov = (d_mean[0], jnp.full_like(d_mean[0], jnp.nan)), (d_cov[0], jnp.full_like(d_cov[0], jnp.nan))
+    pieces = Pieces()
+    pieces.add(ens, keep_paths=False)
+    tn, tnn = ("time", "name"), ("time", "name", "name2")
+    derivatives = {
+        "d_mean_d_eps": (tn, np.asarray(d_mean[0]), {"long_name": "forward-mode derivative of mean in eps"}),
+        "d_mean_d_nu": (tn, np.asarray(d_mean[1]), {"long_name": "forward-mode derivative of mean in nu"}),
+        "d_cov_d_eps": (tnn, np.asarray(d_cov[0]), {"long_name": "forward-mode derivative of cov in eps"}),
+        "d_cov_d_nu": (tnn, np.asarray(d_cov[1]), {"long_name": "forward-mode derivative of cov in nu"}),
+    }
+    ds = dataset(config, built, pieces, provenance(), extra=derivatives)
+
+    params = config.parameters()
+    print(f"scene {args.scene}: " + ", ".join(f"{k}={v:g}" for k, v in params.items()))
+    print(
+        f"{args.paths} paths, t1={args.t1}, dt={args.dt}, solver {args.solver}, seed {args.seed}, "
+        f"{d['precision']}; failed paths: {ds.attrs['n_failed']}"
+    )
+    names, roles, last = built.names, built.roles, -1
+    print(
+        f"\nat t = {float(ds['time'][last]):g}  (mean ± standard error; derivatives by forward mode"
+        + ("" if len(argnums) == 2 else "; d/d nu is nan: it does not exist at nu = 0")
+        + ")"
+    )
+    print(f"{'quantity':<22}{'value':>26}{'d/d eps':>14}{'d/d nu':>14}")
+    mean, mean_se, cov, cov_se = (ds[v].values[last] for v in ("mean", "mean_se", "cov", "cov_se"))
+    for i, n in enumerate(names):
+        label = f"m[{n}]" + (" (systematic drift)" if roles[i] == "dependent_coordinate" else "")
+        print(
+            f"{label:<22}{_fmt(mean[i], mean_se[i]):>26}"
+            f"{float(d_mean[0][last, i]):>14.5g}{float(d_mean[1][last, i]):>14.5g}"
+        )
+    for i, a in enumerate(names):
+        for j, b in enumerate(names[: i + 1]):
+            print(
+                f"{f'K[{a},{b}]':<22}{_fmt(cov[i, j], cov_se[i, j]):>26}"
+                f"{float(d_cov[0][last, i, j]):>14.5g}{float(d_cov[1][last, i, j]):>14.5g}"
+            )
+    if "dependent_coordinate" in roles and len(ens.ts) >= 3:
+        d_eff = statistics.effective_diffusion(ens)
+        print("\neffective diffusion (½ dK/dt over the second half):", np.array2string(np.asarray(d_eff), precision=5))
+    if args.scene == "ball-on-vibrating-plane":
+        t = jnp.asarray(ds["time"].values[last])
+        kxx, kxu, kuu = ball_covariances(t, p.eps, p.nu, p.delta)
+        print(f"closed form (S0 (3.1)): k_xx={float(kxx):.6g}  k_xu={float(kxu):.6g}  k_uu={float(kuu):.6g}")
+    if args.out:
+        out = Path(args.out)
+        write(ds, out)
+        print(f"\nsaved {out} (netCDF{'' if out.suffix == '.nc' else ', although the name does not end in .nc'})")
+    return 0
+
+
+def _load(args, kind: str):
+    """Load and validate ``--config`` (float64 on: runs keep float64 sums)."""
+    import jax
+
+    from ._config import ConfigError, load_config
+
+    jax.config.update("jax_enable_x64", True)
+    try:
+        return load_config(args.config, kind)
+    except ConfigError as e:
+        raise SystemExit(f"nhsde {kind}: {e}") from None
+
+
+def _cmd_simulate_config(args) -> int:
+    from .._ensemble import SimulationError
+    from ._config import ConfigError
+    from ._pieces import run
+
+    given = [f"--{n.replace('_', '-')}" for n in _SCENE_DEFAULTS if getattr(args, n) is not None]
+    given += ["--set"] if args.set else []
+    given += ["--x64"] if args.x64 else []
+    given += ["SCENE"] if args.scene is not None else []
+    if given:
+        raise SystemExit(f"nhsde simulate: {', '.join(given)} cannot be combined with --config; set them in the file.")
+    config = _load(args, "simulate")
+    out = Path(args.out) if args.out else Path(args.config).with_suffix(".nc")
+
+    def report(k):
+        print(f"piece {k + 1} written to {out}", flush=True)
+
+    try:
+        ds = run(config, out, on_piece=report, progress_meter=_progress_meter(args))
+    except (ConfigError, ValueError, SimulationError) as e:
+        raise SystemExit(f"nhsde simulate: {e}") from None
+    names = list(ds["name"].values)
+    print(
+        f"\n{ds.attrs['scene']}: {ds.attrs['n_used']} paths used, {ds.attrs['n_failed']} failed; "
+        f"git {ds.attrs['git_revision']}"
+    )
+    print(f"at t = {float(ds['time'][-1]):g}  (mean ± standard error)")
+    for i, a in enumerate(names):
+        print(f"  m[{a}] = {_fmt(ds['mean'][-1, i], ds['mean_se'][-1, i])}")
+    for i, a in enumerate(names):
+        for j, b in enumerate(names[: i + 1]):
+            print(f"  K[{a},{b}] = {_fmt(ds['cov'][-1, i, j], ds['cov_se'][-1, i, j])}")
+    print(f"\nsaved {out}")
+    return 0
+
+
+def _cmd_simulate(args) -> int:
+    if args.config is not None:
+        return _cmd_simulate_config(args)
+    if args.scene is None:
+        raise SystemExit("nhsde simulate: give a SCENE (see `nhsde scenes`) or --config FILE.")
+    return _cmd_simulate_scene(args)
+
+
+def _cmd_fit(args) -> int:
+    from .._ensemble import SimulationError
+    from ._config import ConfigError
+    from ._fit import run_fit
+
+    config = _load(args, "fit")
+    out = Path(args.out) if args.out else Path(args.config).with_suffix(".nc")
+    try:
+        result, _ = run_fit(config, out)
+    except (ConfigError, ValueError, SimulationError, FloatingPointError) as e:
+        raise SystemExit(f"nhsde fit: {e}") from None
+    print(result)
+    print(f"\nsaved {out}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the ``nhsde`` command."""
+    parser = argparse.ArgumentParser(prog="nhsde", description="Stochastic nonholonomic mechanics in JAX.")
+    sub = parser.add_subparsers(dest="command", required=True)
+    sub.add_parser("scenes", help="list the scenes and their parameters")
+    sim = sub.add_parser(
+        "simulate",
+        help="simulate a scene; print drift statistics and their gradients, or run a --config file",
+        epilog=RUN_EXAMPLE,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sim.add_argument("scene", nargs="?", help="scene name, see `nhsde scenes` (or use --config)")
+    sim.add_argument("--config", help="a TOML run file; runs (or resumes) it, writing netCDF to --out")
+    sim.add_argument("--paths", type=int, help="number of paths (default 4096)")
+    sim.add_argument("--t1", type=float, help="final time (default 10)")
+    sim.add_argument("--dt", type=float, help="time step (default 0.01)")
+    sim.add_argument("--solver", help="euler, milstein, heun, heun2, sra1 or exponential (default euler)")
+    sim.add_argument("--seed", type=int, help="random seed (default 0)")
+    sim.add_argument("--save-points", type=int, help="save times from 0 to t1 (default 11)")
+    sim.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="set a scene parameter")
+    sim.add_argument(
+        "--out",
+        help="write the netCDF run file here, exactly this name (for --config default: the config's name with .nc)",
+    )
+    sim.add_argument("--x64", action="store_true", help="simulate in float64 (default float32; sums are float64)")
+    sim.add_argument(
+        "--progress", action=argparse.BooleanOptionalAction, default=True, help="a progress bar (default on)"
+    )
+    fit = sub.add_parser(
+        "fit",
+        help="fit parameters to a run file through simulation (--config FILE)",
+        epilog=FIT_EXAMPLE,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    fit.add_argument("--config", required=True, help="a TOML fit file")
+    fit.add_argument("--out", help="netCDF file for the estimates (default the config's name with .nc)")
+    return parser
+
+
+def main(argv=None) -> int:
+    """Entry point of the ``nhsde`` command; returns the exit status."""
+    args = build_parser().parse_args(argv)
+    if args.command == "scenes":
+        return _cmd_scenes(args)
+    if args.command == "fit":
+        return _cmd_fit(args)
+    return _cmd_simulate(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

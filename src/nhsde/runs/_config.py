@@ -1,0 +1,329 @@
+"""Run and fit files: the strict TOML schema, :class:`RunConfig`, :class:`ConfigError`, :func:`load_config`.
+
+Every key is checked against the schema: unknown keys, wrong types,
+out-of-range values, unknown scenes, options, parameters, state components or
+saved names are rejected with the key named.  Values are only ever compared
+with known names and numbers, so no configuration can execute code.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import json
+import math
+import tomllib
+from pathlib import Path
+from typing import Any, NamedTuple, cast
+
+import jax
+import jax.numpy as jnp
+
+from .._brownian import BLOCK
+from .._solvers import SOLVERS, solver_needs
+from .._system import StochasticSystem
+from ..scenes import SCENES, AbstractScene, get_scene
+
+__all__ = ["Built", "ConfigError", "RunConfig", "load_config", "x64_enabled"]
+
+
+def x64_enabled() -> bool:
+    """Whether float64 is on (``jax.config.update('jax_enable_x64', True)``)."""
+    return jax.dtypes.canonicalize_dtype(jnp.float64) == jnp.float64
+
+
+class ConfigError(ValueError):
+    """A run file that does not describe a valid run; the message names the key (also in ``key``)."""
+
+    def __init__(self, message: str, key: str | None = None):
+        super().__init__(message)
+        self.key = key
+
+
+_REQUIRED = object()
+
+
+@dataclasses.dataclass(frozen=True)
+class _Field:
+    kind: str  # "int", "float", "str", "bool", "names"
+    default: object = _REQUIRED
+    allowed: tuple | None = None  # for "str"
+    minimum: float | None = None  # for numbers
+    strict: bool = False  # minimum excluded
+    multiple_of: int | None = None  # for "int"
+
+
+def _schema(kind: str) -> dict:
+    """The allowed keys; ``"scene-…"`` tables depend on the scene."""
+    schema: dict[str, Any] = {
+        "scene": _Field("str"),
+        "seed": _Field("int", 0, minimum=0),
+        "precision": _Field("str", "float64", allowed=("float32", "float64")),
+        "options": "scene-options",
+        "parameters": "scene-parameters",
+        "initial_state": "scene-state",
+        "solver": {
+            "name": _Field("str", "euler", allowed=tuple(SOLVERS)),
+            "dt": _Field("float", minimum=0, strict=True),
+        },
+        "paths": {"n": _Field("int", minimum=1)},
+        "statistics": {"save": _Field("names", None)},
+    }
+    if kind == "simulate":
+        schema["solver"] |= {"t0": _Field("float", 0.0), "t1": _Field("float")}
+        schema["paths"] |= {"chunk": _Field("int", 8192, minimum=BLOCK, multiple_of=BLOCK)}
+        schema["statistics"] |= {"save_points": _Field("int", 11, minimum=2), "keep_paths": _Field("bool", False)}
+    else:
+        schema["fit"] = {
+            "data": _Field("str"),
+            "vary": _Field("names", ["eps", "nu"]),
+            "max_steps": _Field("int", 100, minimum=1),
+        }
+    return schema
+
+
+def _type_name(value) -> str:
+    names = {bool: "a boolean", int: "an integer", float: "a number", str: "a string", list: "an array"}
+    return names.get(type(value), "a table" if isinstance(value, dict) else type(value).__name__)
+
+
+_EXPECTED = {"int": "an integer", "float": "a number", "str": "a string", "bool": "true or false"}
+
+
+def _is_kind(kind: str, value: object) -> bool:
+    return {
+        "int": isinstance(value, int) and not isinstance(value, bool),
+        "float": isinstance(value, (int, float)) and not isinstance(value, bool),
+        "str": isinstance(value, str),
+        "bool": isinstance(value, bool),
+        "names": isinstance(value, list) and all(isinstance(v, str) for v in value),
+    }[kind]
+
+
+def _check(key: str, field: _Field, value: Any):
+    if not _is_kind(field.kind, value):
+        expected = _EXPECTED.get(field.kind, "an array of strings")
+        raise ConfigError(f"{key}: expected {expected}, got {_type_name(value)} {value!r}.", key)
+    if field.kind == "float":
+        value = float(value)
+        if not math.isfinite(value):
+            raise ConfigError(f"{key} = {value}: must be finite.", key)
+    if (
+        field.kind in ("int", "float")
+        and field.minimum is not None
+        and (value < field.minimum or (field.strict and value == field.minimum))
+    ):
+        raise ConfigError(f"{key} = {value}: must be {'>' if field.strict else '≥'} {field.minimum:g}.", key)
+    if field.multiple_of and value % field.multiple_of:
+        raise ConfigError(f"{key} = {value}: must be a multiple of {field.multiple_of}.", key)
+    if field.allowed is not None and value not in field.allowed:
+        raise ConfigError(f"{key} = {value!r}: allowed values are {', '.join(map(repr, field.allowed))}.", key)
+    if field.kind == "names" and len(set(value)) != len(value):
+        raise ConfigError(f"{key} = {value}: names must not repeat.", key)
+    return value
+
+
+def _table(prefix: str, spec: dict, raw, out: dict):
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{prefix or 'the file'}: expected a table, got {_type_name(raw)}.", prefix or None)
+    for key in raw:
+        if key not in spec:
+            where = f"[{prefix}]" if prefix else "the top level"
+            name = f"{prefix}.{key}" if prefix else key
+            raise ConfigError(f"{name}: unknown key in {where}; allowed: {', '.join(spec)}.", name)
+    for key, field in spec.items():
+        name = f"{prefix}.{key}" if prefix else key
+        if isinstance(field, dict):
+            out[key] = {}
+            _table(name, field, raw.get(key, {}), out[key])
+        elif isinstance(field, str):  # scene-dependent: checked once the scene is known
+            value = raw.get(key, {})
+            if not isinstance(value, dict):
+                raise ConfigError(f"{name}: expected a table, got {_type_name(value)}.", name)
+            out[key] = value
+        elif key in raw and not (raw[key] is None and field.default is None):  # null: a stored default
+            out[key] = _check(name, field, raw[key])
+        elif field.default is _REQUIRED:
+            raise ConfigError(f"{name}: required key is missing.", name)
+        else:
+            out[key] = field.default
+
+
+def _scene_options(scene_cls) -> dict[str, object]:
+    """The scene's keyword options (``drift=True``, ``route="reduced"``, …) and their defaults."""
+    signature = inspect.signature(scene_cls.__init__)
+    return {
+        name: p.default
+        for name, p in signature.parameters.items()
+        if p.kind is inspect.Parameter.KEYWORD_ONLY and p.default is not inspect.Parameter.empty
+    }
+
+
+def _construct(cls, data: dict) -> AbstractScene:
+    """The scene of ``data`` (constructed once; on failure, a second try tells options from parameters)."""
+    try:
+        return cls(**data["options"], **data["parameters"])
+    except (ValueError, TypeError) as e:
+        error = e
+    try:
+        cls(**data["options"])
+        table = "parameters"
+    except (ValueError, TypeError) as e:
+        table, error = "options", e
+    raise ConfigError(f"{table}: {error}", table) from None
+
+
+def _check_scene(data: dict) -> tuple[AbstractScene, StochasticSystem]:
+    """Check the scene-dependent tables; returns the scene and its system (built once, here)."""
+    if data["scene"] not in SCENES:
+        raise ConfigError(f"scene = {data['scene']!r}: unknown scene; known scenes: {', '.join(SCENES)}.", "scene")
+    cls = SCENES[data["scene"]]
+    options = _scene_options(cls)
+    kinds = {bool: "bool", str: "str", int: "int", float: "float"}
+    for key, value in data["options"].items():
+        if key not in options:
+            raise ConfigError(
+                f"options.{key}: unknown option of {data['scene']}; options: {', '.join(options)}.", f"options.{key}"
+            )
+        _check(f"options.{key}", _Field(kinds[type(options[key])]), value)
+    names = [name for name, *_ in cls.Parameters.describe()]
+    for key, value in data["parameters"].items():
+        if key not in names:
+            raise ConfigError(
+                f"parameters.{key}: unknown parameter of {data['scene']}; parameters: {', '.join(names)}.",
+                f"parameters.{key}",
+            )
+        _check(f"parameters.{key}", _Field("float"), value)
+    data["parameters"] = {k: float(v) for k, v in data["parameters"].items()}
+    scene = _construct(cls, data)  # the scene checks its options and the parameters' declared ranges
+    system = scene.build()
+    for key, value in data["initial_state"].items():
+        if key not in system.layout.names:
+            raise ConfigError(
+                f"initial_state.{key}: not a state component; the state is {', '.join(system.layout.names)}.",
+                f"initial_state.{key}",
+            )
+        _check(f"initial_state.{key}", _Field("float"), value)
+    data["initial_state"] = {k: float(v) for k, v in data["initial_state"].items()}
+    save = data["statistics"]["save"]
+    if save is not None:
+        offered = system.observable_names()
+        for name in save:
+            if name not in offered:
+                raise ConfigError(
+                    f"statistics.save: {name!r} is not offered; this scene offers {', '.join(offered)}.",
+                    "statistics.save",
+                )
+    solver = data["solver"]["name"]
+    try:
+        solver_needs(solver, system)
+    except ValueError as e:
+        raise ConfigError(f"solver.name = {solver!r}: {e}", "solver.name") from None
+    if "fit" in data:
+        for name in data["fit"]["vary"]:
+            if name not in names:
+                raise ConfigError(
+                    f"fit.vary: {name!r} is not a parameter of {data['scene']}; parameters: {', '.join(names)}.",
+                    "fit.vary",
+                )
+        if not data["fit"]["vary"]:
+            raise ConfigError("fit.vary: name at least one parameter.", "fit.vary")
+    return scene, system
+
+
+def _check_times(data: dict):
+    s = data["solver"]
+    if s["t1"] <= s["t0"]:
+        raise ConfigError(f"solver.t1 = {s['t1']}: must be > solver.t0 = {s['t0']}.", "solver.t1")
+    points = data["statistics"]["save_points"]
+    interval = (s["t1"] - s["t0"]) / (points - 1)
+    steps = round(interval / s["dt"])
+    if steps < 1 or abs(steps * s["dt"] - interval) > 1e-9 * interval:
+        raise ConfigError(
+            f"solver.dt = {s['dt']}: must divide the interval {interval:g} between the "
+            f"{points} save points (statistics.save_points) into whole steps.",
+            "solver.dt",
+        )
+
+
+class Built(NamedTuple):
+    """What a run simulates: the scene, its system, the initial state, the key, the saved names and their roles."""
+
+    scene: AbstractScene
+    system: StochasticSystem
+    y0: jax.Array
+    key: jax.Array
+    names: tuple[str, ...]
+    roles: tuple[str, ...]
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """A validated run (``kind='simulate'``) or fit (``kind='fit'``) description.
+
+    ``data`` is the canonical nested dict with every default filled in; two
+    configurations describe the same run exactly when their ``data`` agree.
+    ``base`` is the directory relative paths in it (``fit.data``) refer to.
+    """
+
+    kind: str
+    data: dict
+    base: Path
+    _scene: AbstractScene = dataclasses.field(compare=False, repr=False)
+    _system: StochasticSystem = dataclasses.field(compare=False, repr=False)
+    _x64: bool = dataclasses.field(compare=False, repr=False)
+
+    def to_json(self) -> str:
+        return json.dumps(self.data, sort_keys=True)
+
+    @classmethod
+    def from_dict(cls, raw: dict, kind: str = "simulate", base: Path | str = ".") -> RunConfig:
+        """Validate the parsed TOML ``raw``; :class:`ConfigError` names the offending key."""
+        if kind not in ("simulate", "fit"):
+            raise ValueError(f"kind={kind!r}; allowed: 'simulate', 'fit'.")
+        data: dict = {}
+        _table("", _schema(kind), raw, data)
+        scene, system = _check_scene(data)
+        if kind == "simulate":
+            _check_times(data)
+        return cls(kind, data, Path(base), scene, system, x64_enabled())
+
+    def parameters(self) -> dict[str, float]:
+        """Every parameter of the scene: the file's values and the defaults of the rest."""
+        described = get_scene(self.data["scene"]).Parameters.describe()
+        return {name: float(cast(float, default)) for name, default, *_ in described} | self.data["parameters"]
+
+    def build(self) -> Built:
+        """The scene, system, initial state, key, saved names and roles of this run.
+
+        The scene validated with the file is reused (built once), unless it was
+        built without float64 and float64 is on now.
+        """
+        d = self.data
+        scene, system = self._scene, self._system
+        if x64_enabled() and not self._x64:
+            scene = get_scene(d["scene"])(**d["options"], **d["parameters"])
+            system = scene.build()
+        y0 = scene.initial_state().astype(jnp.dtype(d["precision"]))
+        for name, value in d["initial_state"].items():
+            y0 = y0.at[system.layout.index(name)].set(value)
+        save = d["statistics"]["save"]
+        names = system.layout.names if save is None else tuple(save)
+        layout = system.layout
+        roles = tuple(layout.roles[layout.index(n)] if n in layout.names else "observable" for n in names)
+        return Built(scene, system, y0, jax.random.key(d["seed"]), names, roles)
+
+
+def load_config(path, kind: str = "simulate") -> RunConfig:
+    """Read and validate the TOML file ``path``; :class:`ConfigError` names the offending key."""
+    path = Path(path)
+    try:
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read the file ({e.strerror}).") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{path}: not valid TOML: {e}.") from None
+    try:
+        return RunConfig.from_dict(raw, kind, base=path.resolve().parent)
+    except ConfigError as e:
+        raise ConfigError(f"{path}: {e}", e.key) from None

@@ -1,0 +1,79 @@
+"""The piece loop: :func:`run` integrates a run file's paths in pieces, writing the netCDF file after each.
+
+Piece ``k`` is paths ``k·chunk …`` of the ensemble the seed defines
+(``simulate(first_path=k·chunk)``); ``simulate`` reduces it to moment sums
+about the first piece's shift (``Save(about=shift)``), which are kept in
+float64 and added in piece order.  The scene is built once per run.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from pathlib import Path
+
+import diffrax as dfx
+import xarray as xr
+
+from .._ensemble import Save
+from .._simulate import simulate
+from ._config import RunConfig, x64_enabled
+from ._store import Pieces, dataset, provenance, resume, write
+
+__all__ = ["need_x64", "run"]
+
+
+def need_x64():
+    if not x64_enabled():
+        raise RuntimeError(
+            "runs keep float64 moment sums: call jax.config.update('jax_enable_x64', True) first "
+            "(precision = 'float32' still simulates in float32)."
+        )
+
+
+def run(
+    config: RunConfig,
+    out,
+    *,
+    on_piece: Callable[[int], None] | None = None,
+    progress_meter: dfx.AbstractProgressMeter | None = None,
+) -> xr.Dataset:
+    """Run (or resume) ``config``, writing the netCDF file ``out`` after every piece; returns the dataset written last.
+
+    An existing ``out`` of the same configuration, started by the same code, is
+    resumed from its last piece, bitwise as if never interrupted; another is
+    refused (:class:`ConfigError`).  ``on_piece(k)`` is called after piece ``k``
+    is safely written (an exception there interrupts the run as a kill would);
+    ``progress_meter`` is passed to :func:`~nhsde.simulate` for every piece.
+    """
+    if config.kind != "simulate":
+        raise ValueError(f"run: this is a {config.kind!r} configuration; use run_fit.")
+    need_x64()
+    out = Path(out)
+    d = config.data
+    built = config.build()
+    n_total, chunk = d["paths"]["n"], d["paths"]["chunk"]
+    keep = d["statistics"]["keep_paths"]
+    pieces, prov = resume(out, config) if out.exists() else (Pieces(), provenance())
+    ds = None
+    for k in range(len(pieces.sums), math.ceil(n_total / chunk)):
+        ens = simulate(
+            built.system,
+            built.y0,
+            built.key,
+            n_paths=min(chunk, n_total - k * chunk),
+            first_path=k * chunk,
+            t0=d["solver"]["t0"],
+            t1=d["solver"]["t1"],
+            dt=d["solver"]["dt"],
+            solver=d["solver"]["name"],
+            save=Save(names=built.names, n=d["statistics"]["save_points"], paths=keep, about=pieces.shift),
+            on_failure="exclude",
+            progress_meter=progress_meter,
+        )
+        pieces.add(ens, keep)
+        ds = dataset(config, built, pieces, prov)
+        write(ds, out)
+        if on_piece is not None:
+            on_piece(k)
+    return dataset(config, built, pieces, prov) if ds is None else ds

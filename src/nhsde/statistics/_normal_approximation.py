@@ -1,0 +1,84 @@
+"""The normal approximation of S0 §6: the moment equations' mean and covariance over time, as an ensemble.
+
+For the dependent coordinates ``q''`` (Chaplygin: ``a`` and ``b`` do not depend
+on them) ``ṁ_{q''} = E_N[Λ] = Λ₀`` and the ``q''`` rows of ``K̇`` are
+``(∂Λ₀/∂m_x) K_{x q''} + …``: the statistically linearised drift
+``m_{q''} = ∫Λ₀``, ``K_{q''} = ∫∫ (∂Λ₀/∂m_x) K_x(τ₁, τ₂) (∂Λ₀/∂m_x)ᵀ`` of S0 §6,
+which :func:`~nhsde.statistics.drift_statistics` reads from the result like
+from a Monte-Carlo ensemble.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+from .._ensemble import Ensemble, MomentSums, Save
+from .._misc import check_number, check_steps
+from .._system import StochasticSystem
+from ._moments import gaussian_closure, initial_moments, integrate_moments
+
+__all__ = ["normal_approximation"]
+
+SOLVER_NAME = "normal-approximation"
+
+
+def normal_approximation(
+    system: StochasticSystem,
+    y0,
+    cov0=None,
+    *,
+    t1: float,
+    dt: float,
+    t0: float = 0.0,
+    save: Save | None = None,
+    order: int = 5,
+) -> Ensemble:
+    """Mean and covariance of the state under Gaussian closure, S0 §6, as an :class:`~nhsde.Ensemble`.
+
+    ``y0``, ``cov0`` (default 0) are the initial mean and covariance; ``dt`` the
+    fixed Dopri8 step; ``save`` picks state components and save times as in
+    :func:`~nhsde.simulate`; ``order`` Gauss–Hermite nodes per component.  The
+    standard errors are zero and ``solver`` is ``'normal-approximation'``, so
+    :func:`~nhsde.statistics.drift_statistics` and the other ensemble statistics
+    apply unchanged.
+    """
+    y0, cov0 = initial_moments(system, y0, cov0)
+    closure = gaussian_closure(system, y0.dtype, order)
+    t0, t1 = check_number("t0", t0), check_number("t1", t1)
+    if t1 <= t0:
+        raise ValueError(f"t1={t1} must be > t0={t0}.")
+    dt = check_number("dt", dt, positive=True)
+    n_steps = check_steps("dt", t1 - t0, dt)
+    save = Save() if save is None else save
+    if not isinstance(save, Save):
+        raise TypeError(f"save={save!r}; expected nhsde.Save(...).")
+    if save.paths:
+        raise ValueError("save.paths: the normal approximation has moments only, no paths.")
+    names = system.layout.names if save.names is None else tuple(save.names)
+    for name in names:
+        if name not in system.layout.names:
+            raise ValueError(f"save: {name!r} is not a state component; the state is {system.layout.names}.")
+    n_save = save.n if save.n is not None else max(k for k in range(2, 12) if n_steps % (k - 1) == 0)
+    n_save = int(check_number("save.n", n_save, integer=True))
+    if n_save < 2 or n_steps % (n_save - 1):
+        raise ValueError(f"save.n={n_save}: n − 1 must be ≥ 1 and divide the {n_steps} steps.")
+    ts, ms, ks = integrate_moments(closure, y0, cov0, t0, t1, n_steps, n_save)
+    idx = np.asarray([system.layout.index(n) for n in names])
+    mean, cov = ms[:, idx], ks[:, idx[:, None], idx[None, :]]
+    return Ensemble(
+        ts=ts,
+        mean=mean,
+        cov=cov,
+        mean_se=jnp.zeros_like(mean),
+        cov_se=jnp.zeros_like(cov),
+        n_used=jnp.zeros((), jnp.int32),
+        n_failed=jnp.zeros((), jnp.int32),
+        failed=None,
+        paths=None,
+        sums=MomentSums.zeros(mean),  # no paths: the moments are exact for the closure, their errors zero
+        names=names,
+        roles=tuple(system.layout.roles[i] for i in idx),
+        solver=SOLVER_NAME,
+        dt=(t1 - t0) / n_steps,
+    )
