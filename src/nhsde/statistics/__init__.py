@@ -26,6 +26,9 @@ from ._fokker_planck import (
     fokker_planck as fokker_planck,
     stationary_fokker_planck as stationary_fokker_planck,
 )
-from ._normal_approximation import normal_approximation as normal_approximation
+from ._normal_approximation import (
+    NormalApproximation as NormalApproximation,
+    normal_approximation as normal_approximation,
+)
 from ._stationary import StationaryDensity as StationaryDensity, stationary_density as stationary_density
 from ._stationary_drift import StationaryDrift as StationaryDrift, stationary_drift as stationary_drift

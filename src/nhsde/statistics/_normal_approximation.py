@@ -10,17 +10,28 @@ from a Monte-Carlo ensemble.
 
 from __future__ import annotations
 
-import jax.numpy as jnp
+import equinox as eqx
 import numpy as np
+from jaxtyping import Array, Float
 
-from .._ensemble import Ensemble, MomentSums, Save
+from .._ensemble import AbstractMoments, Save
 from .._misc import check_number, check_steps
 from .._system import StochasticSystem
 from ._moments import gaussian_closure, initial_moments, integrate_moments
 
 __all__ = ["normal_approximation"]
 
-SOLVER_NAME = "normal-approximation"
+
+class NormalApproximation(AbstractMoments):
+    """Means and covariances from the normal-approximation moment equations (S0 §6): no paths, no Monte-Carlo
+    error; :func:`~nhsde.statistics.drift_statistics` and the other moment statistics apply unchanged."""
+
+    ts: Float[Array, " n"]
+    mean: Float[Array, "n k"]
+    cov: Float[Array, "n k k"]
+    names: tuple[str, ...] = eqx.field(static=True)
+    roles: tuple[str, ...] = eqx.field(static=True)
+    dt: float = eqx.field(static=True)
 
 
 def normal_approximation(
@@ -33,15 +44,12 @@ def normal_approximation(
     t0: float = 0.0,
     save: Save | None = None,
     order: int = 5,
-) -> Ensemble:
-    """Mean and covariance of the state under Gaussian closure, S0 §6, as an :class:`~nhsde.Ensemble`.
+) -> NormalApproximation:
+    """Mean and covariance of the state under Gaussian closure, S0 §6, as a :class:`NormalApproximation`.
 
     ``y0``, ``cov0`` (default 0) are the initial mean and covariance; ``dt`` the
     fixed Dopri8 step; ``save`` picks state components and save times as in
-    :func:`~nhsde.simulate`; ``order`` Gauss–Hermite nodes per component.  The
-    standard errors are zero and ``solver`` is ``'normal-approximation'``, so
-    :func:`~nhsde.statistics.drift_statistics` and the other ensemble statistics
-    apply unchanged.
+    :func:`~nhsde.simulate`; ``order`` Gauss–Hermite nodes per component.
     """
     y0, cov0 = initial_moments(system, y0, cov0)
     closure = gaussian_closure(system, y0.dtype, order)
@@ -66,19 +74,5 @@ def normal_approximation(
     ts, ms, ks = integrate_moments(closure, y0, cov0, t0, t1, n_steps, n_save)
     idx = np.asarray([system.layout.index(n) for n in names])
     mean, cov = ms[:, idx], ks[:, idx[:, None], idx[None, :]]
-    return Ensemble(
-        ts=ts,
-        mean=mean,
-        cov=cov,
-        mean_se=jnp.zeros_like(mean),
-        cov_se=jnp.zeros_like(cov),
-        n_used=jnp.zeros((), jnp.int32),
-        n_failed=jnp.zeros((), jnp.int32),
-        failed=None,
-        paths=None,
-        sums=MomentSums.zeros(mean),  # no paths: the moments are exact for the closure, their errors zero
-        names=names,
-        roles=tuple(system.layout.roles[i] for i in idx),
-        solver=SOLVER_NAME,
-        dt=(t1 - t0) / n_steps,
-    )
+    roles = tuple(system.layout.roles[i] for i in idx)
+    return NormalApproximation(ts=ts, mean=mean, cov=cov, names=names, roles=roles, dt=(t1 - t0) / n_steps)
