@@ -23,6 +23,7 @@ import jax.numpy as jnp
 
 from .._params import AbstractParameters, parameter, sqrt_intensity
 from .._system import StateLayout, StochasticSystem
+from ._base import AbstractScene
 
 __all__ = ["BallOnVibratingPlane", "BallParameters", "ball_covariances"]
 
@@ -81,7 +82,7 @@ _OMEGA_WITH_POSITION = _omega(2, 3)
 _OMEGA_VELOCITY = _omega(0, 1)
 
 
-class BallOnVibratingPlane(eqx.Module):
+class BallOnVibratingPlane(AbstractScene):
     """Scene: the ball of S0 §3, built into a :class:`StochasticSystem` by :meth:`build`.
 
     Keyword arguments are the :class:`BallParameters` (``eps``, ``nu``, ``radius``,
@@ -92,11 +93,12 @@ class BallOnVibratingPlane(eqx.Module):
     the rolling constraint (no extra state).
     """
 
+    name: ClassVar[str] = "ball-on-vibrating-plane"
+    Parameters: ClassVar[type[BallParameters]] = BallParameters
+
     params: BallParameters
     drift: bool = eqx.field(static=True)
     angular_velocity: bool = eqx.field(static=True)
-
-    Parameters: ClassVar[type[BallParameters]] = BallParameters
 
     def __init__(self, *, drift: bool = True, angular_velocity: bool = False, **params):
         self.params = BallParameters(**params)

@@ -31,8 +31,8 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from .._params import AbstractParameters, parameter, sqrt_intensity
-from ..mechanics import MechanicalSpec, ServoConstraint
-from ._spec_scene import AbstractSpecScene, checked_route
+from ..mechanics import ServoConstraint
+from ._spec_scene import AbstractSpecScene
 
 __all__ = ["BeghinParameters", "BeghinPlate"]
 
@@ -84,36 +84,30 @@ def _torque(q, v, pi, t, p):
     return jnp.stack([jnp.zeros((), q.dtype), plate])[:, None]
 
 
+_TERMS = dict(kinetic_energy=_kinetic, potential=_potential, dissipation=_dissipation, noise_force=_torque)
+_SERVO = ServoConstraint(matrix=_servo_matrix, realisation=_servo_on_disk)
+
+
 class BeghinPlate(AbstractSpecScene):
     """Beghin's plate hinged to a disk, α − β = π/2 kept by contact or by a servomotor (S1 Ex. 3.1)."""
+
+    name: ClassVar[str] = "beghin-plate"
+    Parameters: ClassVar[type[BeghinParameters]] = BeghinParameters
+    coordinates: ClassVar[tuple[str, ...]] = ("alpha", "beta")
+    dependent: ClassVar[tuple[str, ...]] = ("alpha",)
 
     params: BeghinParameters
     route: str = eqx.field(static=True)
     realisation: str = eqx.field(static=True)
-    dependent: ClassVar[tuple[str, ...]] = ("alpha",)
-    stabilization: ClassVar[float] = 10.0
-
-    Parameters: ClassVar[type[BeghinParameters]] = BeghinParameters
 
     def __init__(self, *, realisation: str = "servo", route: str = "reduced", **params):
         if realisation not in ("servo", "contact"):
             raise ValueError(f"realisation={realisation!r}; allowed: 'servo', 'contact'.")
-        self.params = BeghinParameters(**params)
-        self.route = checked_route(route)
-        self.realisation = realisation
+        self.params, self.route, self.realisation = BeghinParameters(**params), route, realisation
 
-    def spec(self) -> MechanicalSpec:
-        kw = {
-            "coordinates": ("alpha", "beta"),
-            "params": self.params,
-            "kinetic_energy": _kinetic,
-            "potential": _potential,
-            "dissipation": _dissipation,
-            "noise_force": _torque,
-        }
-        if self.realisation == "contact":
-            return MechanicalSpec(holonomic=_right_angle, **kw)
-        return MechanicalSpec(servo=ServoConstraint(matrix=_servo_matrix, realisation=_servo_on_disk), **kw)
+    @property
+    def terms(self):
+        return _TERMS | ({"holonomic": _right_angle} if self.realisation == "contact" else {"servo": _SERVO})
 
     def configuration(self):
         """``β = 0.3``, ``α = β + π/2``, both turning at 0.5."""

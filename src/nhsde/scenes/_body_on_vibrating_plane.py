@@ -50,20 +50,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._params import AbstractParameters, parameter
+from .._misc import FAST_COMPILE, is_concrete
+from .._params import AbstractParameters, parameter, sqrt_intensity
 from .._system import StateLayout, StochasticSystem
-from ..analysis._liouville import FAST_COMPILE
 from ..bodies import (
     Ellipsoid,
     RigidBody,
     angular_acceleration,
     contact_inertia,
     contact_kinematics,
+    fibonacci_directions,
     position_rates,
     rolling_energy,
 )
 from ..bodies._rolling import solve3
-from ..bodies._surfaces import _concrete, fibonacci_directions
+from ._base import AbstractScene
 
 __all__ = [
     "BodyOnVibratingPlane",
@@ -75,18 +76,16 @@ __all__ = [
 
 
 class VibratingPlaneParameters(AbstractParameters):
+    body: RigidBody
     eps: jnp.ndarray = parameter(default=0.5, lower=0.0, doc="specific friction ε of Φ")
     nu: jnp.ndarray = parameter(default=1.0, lower=0.0, doc="intensity ν of the vibration acceleration, per axis")
     gravity: jnp.ndarray = parameter(default=1.0, lower=0.0, doc="gravitational acceleration g")
-    body: RigidBody
 
     def __init__(self, *, body: RigidBody, eps=0.5, nu=1.0, gravity=1.0):
         if not isinstance(body, RigidBody):
             raise TypeError(f"VibratingPlaneParameters: body={body!r}; expected nhsde.bodies.RigidBody.")
         self.body = body
-        self.eps = eps
-        self.nu = nu
-        self.gravity = gravity
+        self.eps, self.nu, self.gravity = jnp.asarray(eps), jnp.asarray(nu), jnp.asarray(gravity)
 
     @property
     def alpha(self):
@@ -96,7 +95,7 @@ class VibratingPlaneParameters(AbstractParameters):
 
 def _default_body() -> RigidBody:
     """A homogeneous oblate spheroid, semi-axes ``(1, 1, 0.6)``, mass 1: a body of revolution."""
-    return RigidBody(mass=1.0, inertia=(0.272, 0.272, 0.4), surface=Ellipsoid(semi_axes=(1.0, 1.0, 0.6)))
+    return RigidBody(mass=1.0, inertia=(0.272, 0.272, 0.4), surface=Ellipsoid(semi_axes=jnp.array([1.0, 1.0, 0.6])))
 
 
 class _Layout(eqx.Module):
@@ -146,11 +145,12 @@ class _Diffusion(eqx.Module):
         r = body.surface.contact_point(n)
         cross_r = jax.vmap(lambda e: jnp.cross(r, e), out_axes=1)(jnp.eye(3, dtype=y.dtype))  # [r]×
         it = contact_inertia(body.inertia, body.mass, r)
-        b_omega = body.mass * jnp.sqrt(p.nu) * solve3(it, cross_r)  # torque (−m√ν V) × r = m√ν r × V
+        root = sqrt_intensity(p.nu)
+        b_omega = body.mass * root * solve3(it, cross_r)  # torque (−m√ν V) × r = m√ν r × V
         rows = [b_omega, jnp.zeros((y.shape[0] - 3, 3), y.dtype)]
         _, pi_at = self.layout.slices()
         if pi_at is not None:
-            rows = [b_omega, jnp.zeros((pi_at - 3, 3), y.dtype), jnp.sqrt(p.nu) * jnp.eye(3, dtype=y.dtype)]
+            rows = [b_omega, jnp.zeros((pi_at - 3, 3), y.dtype), root * jnp.eye(3, dtype=y.dtype)]
         return jnp.concatenate(rows)
 
 
@@ -162,7 +162,7 @@ def _energy(t, y, p):
     return rolling_energy(y, p)
 
 
-class BodyOnVibratingPlane(eqx.Module):
+class BodyOnVibratingPlane(AbstractScene):
     """Scene: a heavy convex body rolling on a vibrating rough plane, S0 §5, friction ``Φ₁`` or ``Φ₂``.
 
     Keyword arguments: ``eps``, ``nu``, ``gravity`` and ``body`` (a
@@ -174,11 +174,12 @@ class BodyOnVibratingPlane(eqx.Module):
     ``(ω, γ)`` (body axes).  Observables ``theta`` (nutation angle) and ``energy``.
     """
 
+    name: ClassVar[str] = "body-on-vibrating-plane"
+    Parameters: ClassVar[type[VibratingPlaneParameters]] = VibratingPlaneParameters
+
     params: VibratingPlaneParameters
     friction: str = eqx.field(static=True)
     drift: bool = eqx.field(static=True)
-
-    Parameters: ClassVar[type[VibratingPlaneParameters]] = VibratingPlaneParameters
 
     def __init__(
         self,
@@ -229,7 +230,7 @@ class BodyOnVibratingPlane(eqx.Module):
 
 
 def _symmetric(body: RigidBody):
-    if _concrete(body.inertia):
+    if is_concrete(body.inertia):
         i = np.asarray(body.inertia)
         if not (np.allclose(i, np.diag(np.diag(i))) and np.isclose(i[0, 0], i[1, 1])):
             raise ValueError(

@@ -29,9 +29,10 @@ from typing import ClassVar
 import equinox as eqx
 import jax.numpy as jnp
 
-from .._params import AbstractParameters, parameter
+from .._params import AbstractParameters, parameter, sqrt_intensity
 from .._system import StateLayout, StochasticSystem
 from ..bodies import position_rates
+from ._base import AbstractScene
 
 __all__ = ["ChaplyginBall", "ChaplyginBallParameters", "chaplygin_ball_measure", "chaplygin_ball_omega"]
 
@@ -81,11 +82,11 @@ def _drift(t, y, p):
 
 
 def _diffusion(t, y, p):
-    noise = jnp.sqrt(p.nu) * jnp.eye(3, dtype=y.dtype)
+    noise = sqrt_intensity(p.nu) * jnp.eye(3, dtype=y.dtype)
     return jnp.concatenate([noise, jnp.zeros((y.shape[0] - 3, 3), y.dtype)])
 
 
-class ChaplyginBall(eqx.Module):
+class ChaplyginBall(AbstractScene):
     """Scene: Chaplygin's balanced ball on a rough plane under a random couple and rolling resistance.
 
     State ``(M, γ)`` (angular momentum about the contact point, upward vertical in
@@ -93,10 +94,11 @@ class ChaplyginBall(eqx.Module):
     point ``(x, y)``.  Additive noise; observable ``energy`` ``H = ½(M, ω)``.
     """
 
+    name: ClassVar[str] = "chaplygin-ball"
+    Parameters: ClassVar[type[ChaplyginBallParameters]] = ChaplyginBallParameters
+
     params: ChaplyginBallParameters
     drift: bool = eqx.field(static=True)
-
-    Parameters: ClassVar[type[ChaplyginBallParameters]] = ChaplyginBallParameters
 
     def __init__(self, *, drift: bool = False, **params):
         self.params = ChaplyginBallParameters(**params)

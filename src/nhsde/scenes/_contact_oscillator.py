@@ -16,8 +16,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from .._params import AbstractParameters, parameter, sqrt_intensity
-from ..mechanics import MechanicalSpec
-from ._spec_scene import AbstractSpecScene, checked_route
+from ._spec_scene import AbstractSpecScene
 
 __all__ = ["ContactOscillator", "ContactOscillatorParameters"]
 
@@ -53,27 +52,23 @@ def _forces(q, v, pi, t, p):
 class ContactOscillator(AbstractSpecScene):
     """Point with the constraint ẋ + y ż = 0 in a harmonic (and gravity) potential."""
 
+    name: ClassVar[str] = "contact-oscillator"
+    Parameters: ClassVar[type[ContactOscillatorParameters]] = ContactOscillatorParameters
+    coordinates: ClassVar[tuple[str, ...]] = ("x", "y", "z")
+    terms: ClassVar[dict] = dict(
+        kinetic_energy=_kinetic,
+        potential=_potential,
+        constraints=_contact,
+        dissipation=_dissipation,
+        noise_force=_forces,
+    )
+    dependent: ClassVar[tuple[str, ...]] = ("x",)
+
     params: ContactOscillatorParameters
     route: str = eqx.field(static=True)
-    dependent: ClassVar[tuple[str, ...]] = ("x",)
-    stabilization: ClassVar[float] = 10.0
-
-    Parameters: ClassVar[type[ContactOscillatorParameters]] = ContactOscillatorParameters
 
     def __init__(self, *, route: str = "reduced", **params):
-        self.params = ContactOscillatorParameters(**params)
-        self.route = checked_route(route)
-
-    def spec(self) -> MechanicalSpec:
-        return MechanicalSpec(
-            coordinates=("x", "y", "z"),
-            params=self.params,
-            kinetic_energy=_kinetic,
-            potential=_potential,
-            constraints=_contact,
-            dissipation=_dissipation,
-            noise_force=_forces,
-        )
+        self.params, self.route = ContactOscillatorParameters(**params), route
 
     def configuration(self):
         """``q = (1, 0.5, 0)``, ``ẏ = 0.3``, ``ż = 0.4``, ``ẋ = −y ż``."""

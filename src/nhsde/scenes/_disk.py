@@ -17,8 +17,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from .._params import AbstractParameters, parameter, sqrt_intensity
-from ..mechanics import MechanicalSpec
-from ._spec_scene import AbstractSpecScene, checked_route
+from ._spec_scene import AbstractSpecScene
 
 __all__ = ["DiskParameters", "VerticalRollingDisk"]
 
@@ -64,26 +63,19 @@ def _torques(q, v, pi, t, p):
 class VerticalRollingDisk(AbstractSpecScene):
     """Vertical disk rolling on a plane (Voronets form in (θ̇, φ̇); contact point drifts)."""
 
+    name: ClassVar[str] = "vertical-rolling-disk"
+    Parameters: ClassVar[type[DiskParameters]] = DiskParameters
+    coordinates: ClassVar[tuple[str, ...]] = ("x", "y", "theta", "phi")
+    terms: ClassVar[dict] = dict(
+        kinetic_energy=_kinetic, constraints=_rolling, dissipation=_dissipation, noise_force=_torques
+    )
+    dependent: ClassVar[tuple[str, ...]] = ("x", "y")
+
     params: DiskParameters
     route: str = eqx.field(static=True)
-    dependent: ClassVar[tuple[str, ...]] = ("x", "y")
-    stabilization: ClassVar[float] = 10.0
-
-    Parameters: ClassVar[type[DiskParameters]] = DiskParameters
 
     def __init__(self, *, route: str = "reduced", **params):
-        self.params = DiskParameters(**params)
-        self.route = checked_route(route)
-
-    def spec(self) -> MechanicalSpec:
-        return MechanicalSpec(
-            coordinates=("x", "y", "theta", "phi"),
-            params=self.params,
-            kinetic_energy=_kinetic,
-            constraints=_rolling,
-            dissipation=_dissipation,
-            noise_force=_torques,
-        )
+        self.params, self.route = DiskParameters(**params), route
 
     def configuration(self):
         """At the origin, heading along x, rolling at ``θ̇ = 1`` and turning at ``φ̇ = 0.5``."""

@@ -1,6 +1,6 @@
 """The rattleback (celt): an ellipsoid with skewed inertia rolling without slipping on a plane, S4 Remark 4.4.
 
-Kane & Levinson's body (Int. J. Non-Linear Mech. 17 (1982) 175) as a classic
+Kane & Levinson's body (Int. J. Non-Linear Mech. 17 (1982) 175) held as a classic
 :class:`~nhsde.scenes.RollingBody`: semi-axes ``a, b, c``, centre of mass a
 distance ``h`` below the centre on the ``c`` axis, central moments ``A, B, C``
 about the ``a, b, c`` axes and the product of inertia ``D`` in the ``a``–``b`` plane.
@@ -37,14 +37,15 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ..bodies import Ellipsoid, RigidBody
-from ..bodies._surfaces import _concrete
+from .._misc import is_concrete
+from ..bodies import Ellipsoid, RigidBody, RollingField, RollingParameters
+from ._base import AbstractRollingBodyScene
 from ._rolling import RollingBody
 
 __all__ = ["Rattleback"]
 
 
-class Rattleback(RollingBody):
+class Rattleback(AbstractRollingBodyScene):
     """Kane & Levinson's rattleback rolling without slipping (classic contact) on a horizontal plane.
 
     Keyword arguments in Kane & Levinson's form (SI units): ``semi_axes = (a, b, c)``,
@@ -52,7 +53,10 @@ class Rattleback(RollingBody):
     central moments, ``product = D`` their product of inertia, ``gravity``.  They
     become the leaves of :class:`~nhsde.bodies.RollingParameters`, with the inertia
     matrix ``[[A, −D, 0], [−D, B, 0], [0, 0, C]]`` in the library's axes (module docstring).
+    The scene holds that :class:`~nhsde.scenes.RollingBody` (``rolling``) and adds :meth:`spin`.
     """
+
+    rolling: RollingBody
 
     def __init__(
         self,
@@ -68,7 +72,7 @@ class Rattleback(RollingBody):
         inertia = jnp.asarray(inertia)
         if inertia.shape != (3,):
             raise ValueError(f"Rattleback: inertia has shape {inertia.shape}; expected the (3,) moments (A, B, C).")
-        if _concrete(semi_axes, height) and semi_axes.shape == (3,) and not abs(float(height)) < float(semi_axes[2]):
+        if is_concrete(semi_axes, height) and semi_axes.shape == (3,) and not abs(float(height)) < float(semi_axes[2]):
             raise ValueError(
                 f"Rattleback: height={float(height):g}; the centre of mass must lie inside the body, "
                 f"|height| < c = {float(semi_axes[2]):g}."
@@ -83,7 +87,23 @@ class Rattleback(RollingBody):
         )
         offset = jnp.stack([jnp.zeros_like(height), jnp.zeros_like(height), -height])
         body = RigidBody(mass=mass, inertia=matrix, surface=Ellipsoid(semi_axes=semi_axes, offset=offset))
-        super().__init__(body=body, contact="classic", gravity=gravity)
+        self.rolling = RollingBody(body=body, contact="classic", gravity=gravity)
+
+    @property
+    def params(self) -> RollingParameters:
+        return self.rolling.params
+
+    @property
+    def vector_field(self) -> RollingField:
+        return self.rolling.vector_field
+
+    def energy(self, y):
+        """``E = ½(ω, Ĩω) + U(γ)``."""
+        return self.rolling.energy(y)
+
+    def initial_state(self, omega, gamma, *, project: bool = False):
+        """The state ``(ω, γ)``, checked as by :meth:`RollingBody.initial_state`."""
+        return self.rolling.initial_state(omega, gamma, project=project)
 
     def spin(self, n, tilt=0.0, azimuth=0.0):
         """The state ``(ω, γ) = (nγ, γ)``: spin ``n`` about the vertical, the ``c`` axis tilted by ``tilt``.

@@ -1,9 +1,11 @@
 """Deterministic rolling scenes: a rigid body on a plane or a sphere (S2 §1), a flat base on a sphere (S2 §4.5).
 
-These are ordinary differential equations: a scene holds the parameters
-(``params``), the vector field ``vector_field(t, y, params)`` and the state
-layout, and checks and builds initial states.  Integrate them with
-:func:`nhsde.analysis.solve_flow`, check them with :mod:`nhsde.analysis`.
+These are ordinary differential equations, the deterministic kind
+:class:`~nhsde.scenes.AbstractRollingBodyScene` (not stochastic scenes, not in
+``SCENES``): a scene holds the parameters (``params``), the vector field
+``vector_field(t, y, params)`` and the state layout, and checks and builds
+initial states.  Integrate them with :func:`nhsde.analysis.solve_flow`, check
+them with :mod:`nhsde.analysis`.
 """
 
 from __future__ import annotations
@@ -11,11 +13,9 @@ from __future__ import annotations
 import warnings
 from typing import ClassVar, Literal
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from .._system import StateLayout
 from ..bodies import (
     Disk,
     FlatBaseField,
@@ -27,6 +27,7 @@ from ..bodies import (
     rolling_energy,
 )
 from ..bodies._rolling import check_rolling_configuration
+from ._base import AbstractRollingBodyScene
 
 __all__ = ["FlatBaseOnSphere", "RollingBody"]
 
@@ -45,7 +46,7 @@ def _fix(name: str, violation: float, project: bool) -> None:
     warnings.warn(f"initial state projected onto {name}: correction {violation:.3g}.", stacklevel=3)
 
 
-class RollingBody(eqx.Module):
+class RollingBody(AbstractRollingBodyScene):
     """Scene: a rigid body rolling without slipping (``contact='classic'``) or without slipping and
     spinning (``contact='rubber'``) on a horizontal plane or, with ``curvature=k``, on a fixed sphere.
 
@@ -78,10 +79,6 @@ class RollingBody(eqx.Module):
         self.params = RollingParameters(body=body, curvature=curvature if sphere else 0.0, gravity=gravity)
         check_rolling_configuration(self.params, sphere)
         self.vector_field = RollingField(rubber=contact == "rubber", sphere=sphere, position=bool(drift))
-
-    @property
-    def layout(self) -> StateLayout:
-        return self.vector_field.layout
 
     def energy(self, y):
         """``E = ½(ω, Ĩω) + U(γ)``."""
@@ -124,7 +121,7 @@ class RollingBody(eqx.Module):
         return jnp.asarray(np.concatenate(parts))
 
 
-class FlatBaseOnSphere(eqx.Module):
+class FlatBaseOnSphere(AbstractRollingBodyScene):
     """Scene: a body rolling (rubber) on a fixed sphere with a flat base, S2 §4.5, (4.6)–(4.7).
 
     Keyword arguments are the :class:`~nhsde.bodies.FlatBaseParameters`
@@ -140,10 +137,6 @@ class FlatBaseOnSphere(eqx.Module):
     def __init__(self, **params):
         self.params = FlatBaseParameters(**params)
         self.vector_field = FlatBaseField()
-
-    @property
-    def layout(self) -> StateLayout:
-        return self.vector_field.layout
 
     def energy(self, y):
         """``E = ½(ω, Ĩω)``."""

@@ -18,8 +18,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from .._params import AbstractParameters, parameter, sqrt_intensity
-from ..mechanics import MechanicalSpec
-from ._spec_scene import AbstractSpecScene, checked_route
+from ._spec_scene import AbstractSpecScene
 
 __all__ = ["BallFromLagrangian", "RollingBallParameters"]
 
@@ -52,26 +51,19 @@ def _vibration(q, v, pi, t, p):
 class BallFromLagrangian(AbstractSpecScene):
     """Ball rolling on a randomly vibrating plane, equations derived by the library."""
 
+    name: ClassVar[str] = "ball-from-lagrangian"
+    Parameters: ClassVar[type[RollingBallParameters]] = RollingBallParameters
+    coordinates: ClassVar[tuple[str, ...]] = ("x", "y", "phi_x", "phi_y", "phi_z")
+    terms: ClassVar[dict] = dict(
+        kinetic_energy=_kinetic, constraints=_rolling, dissipation=_dissipation, noise_force=_vibration
+    )
+    dependent: ClassVar[tuple[str, ...]] = ("x", "y")
+
     params: RollingBallParameters
     route: str = eqx.field(static=True)
-    dependent: ClassVar[tuple[str, ...]] = ("x", "y")
-    stabilization: ClassVar[float] = 10.0
-
-    Parameters: ClassVar[type[RollingBallParameters]] = RollingBallParameters
 
     def __init__(self, *, route: str = "reduced", **params):
-        self.params = RollingBallParameters(**params)
-        self.route = checked_route(route)
-
-    def spec(self) -> MechanicalSpec:
-        return MechanicalSpec(
-            coordinates=("x", "y", "phi_x", "phi_y", "phi_z"),
-            params=self.params,
-            kinetic_energy=_kinetic,
-            constraints=_rolling,
-            dissipation=_dissipation,
-            noise_force=_vibration,
-        )
+        self.params, self.route = RollingBallParameters(**params), route
 
     def configuration(self):
         """At rest at the origin of the plane."""

@@ -28,8 +28,7 @@ import jax
 import jax.numpy as jnp
 
 from .._params import AbstractParameters, parameter, sqrt_intensity
-from ..mechanics import MechanicalSpec
-from ._spec_scene import AbstractSpecScene, checked_route
+from ._spec_scene import AbstractSpecScene
 
 __all__ = ["RollingDisk", "RollingDiskParameters", "rolling_disk_kinematics"]
 
@@ -113,29 +112,24 @@ class RollingDisk(AbstractSpecScene):
     the scene starts from (``ẋ = R φ̇``).
     """
 
+    name: ClassVar[str] = "rolling-disk"
+    Parameters: ClassVar[type[RollingDiskParameters]] = RollingDiskParameters
+    coordinates: ClassVar[tuple[str, ...]] = ("x", "y", "psi", "theta", "phi")
+    terms: ClassVar[dict] = dict(
+        mass_matrix=_mass_matrix,
+        potential=_potential,
+        constraints=_rolling,
+        dissipation=_dissipation,
+        noise_force=_torques,
+    )
+    dependent: ClassVar[tuple[str, ...]] = ("x", "y")
+
     params: RollingDiskParameters
     route: str = eqx.field(static=True)
     spin: float = eqx.field(static=True)
-    dependent: ClassVar[tuple[str, ...]] = ("x", "y")
-    stabilization: ClassVar[float] = 10.0
-
-    Parameters: ClassVar[type[RollingDiskParameters]] = RollingDiskParameters
 
     def __init__(self, *, route: str = "reduced", spin: float = 3.0, **params):
-        self.params = RollingDiskParameters(**params)
-        self.route = checked_route(route)
-        self.spin = float(spin)
-
-    def spec(self) -> MechanicalSpec:
-        return MechanicalSpec(
-            coordinates=("x", "y", "psi", "theta", "phi"),
-            params=self.params,
-            mass_matrix=_mass_matrix,
-            potential=_potential,
-            constraints=_rolling,
-            dissipation=_dissipation,
-            noise_force=_torques,
-        )
+        self.params, self.route, self.spin = RollingDiskParameters(**params), route, float(spin)
 
     def configuration(self):
         """Upright at the origin, heading along ``x``, rolling straight at ``φ̇ = spin``."""

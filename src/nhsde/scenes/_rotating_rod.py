@@ -17,8 +17,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from .._params import AbstractParameters, parameter, sqrt_intensity
-from ..mechanics import MechanicalSpec
-from ._spec_scene import AbstractSpecScene, checked_route
+from ._spec_scene import AbstractSpecScene
 
 __all__ = ["BeadOnRotatingRod", "RodParameters"]
 
@@ -62,26 +61,19 @@ def _random_force(q, v, pi, t, p):
 class BeadOnRotatingRod(AbstractSpecScene):
     """Bead on a rod turned by a prescribed control angle u(t) (a parametric constraint)."""
 
+    name: ClassVar[str] = "bead-on-rotating-rod"
+    Parameters: ClassVar[type[RodParameters]] = RodParameters
+    coordinates: ClassVar[tuple[str, ...]] = ("x", "y")
+    terms: ClassVar[dict] = dict(
+        kinetic_energy=_kinetic, holonomic=_on_rod, dissipation=_dissipation, noise_force=_random_force
+    )
+    dependent: ClassVar[tuple[str, ...]] = ("y",)
+
     params: RodParameters
     route: str = eqx.field(static=True)
-    dependent: ClassVar[tuple[str, ...]] = ("y",)
-    stabilization: ClassVar[float] = 10.0
-
-    Parameters: ClassVar[type[RodParameters]] = RodParameters
 
     def __init__(self, *, route: str = "multipliers", **params):
-        self.params = RodParameters(**params)
-        self.route = checked_route(route)
-
-    def spec(self) -> MechanicalSpec:
-        return MechanicalSpec(
-            coordinates=("x", "y"),
-            params=self.params,
-            kinetic_energy=_kinetic,
-            holonomic=_on_rod,
-            dissipation=_dissipation,
-            noise_force=_random_force,
-        )
+        self.params, self.route = RodParameters(**params), route
 
     def configuration(self):
         """At ``r = 1`` on the rod (``u(0) = 0``), sliding out at 0.2, carried round at ``u̇(0) = Ω + A w``."""

@@ -25,6 +25,7 @@ import jax.numpy as jnp
 
 from .._params import AbstractParameters, parameter, sqrt_intensity
 from .._system import StateLayout, StochasticSystem
+from ._base import AbstractScene
 
 __all__ = ["ChaplyginSleigh", "SleighParameters"]
 
@@ -84,7 +85,7 @@ def _energy(v_index, w_index):
 _ENERGY_FULL, _ENERGY_REDUCED = _energy(3, 4), _energy(0, 1)
 
 
-class ChaplyginSleigh(eqx.Module):
+class ChaplyginSleigh(AbstractScene):
     """Scene: the noisy Chaplygin sleigh.
 
     ``drift=True`` keeps the contact point ``(x, y)`` and heading ``θ`` in the
@@ -93,10 +94,11 @@ class ChaplyginSleigh(eqx.Module):
     ``dE[H]/dt = −4ε E[H] + ν``.
     """
 
+    name: ClassVar[str] = "chaplygin-sleigh"
+    Parameters: ClassVar[type[SleighParameters]] = SleighParameters
+
     params: SleighParameters
     drift: bool = eqx.field(static=True)
-
-    Parameters: ClassVar[type[SleighParameters]] = SleighParameters
 
     def __init__(self, *, drift: bool = True, **params):
         self.params = SleighParameters(**params)

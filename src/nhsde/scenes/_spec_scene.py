@@ -1,45 +1,60 @@
 """Scenes written as a :class:`~nhsde.mechanics.MechanicalSpec`: the equations come from the library."""
 
-from __future__ import annotations
-
+# No `from __future__ import annotations`: equinox reads AbstractVar/AbstractClassVar from live annotations.
 import abc
-from typing import ClassVar
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any, ClassVar
 
-import equinox as eqx
-
-from .._params import AbstractParameters
 from .._system import StochasticSystem
 from ..mechanics import ROUTES, AbstractForm, MechanicalSpec, formulate
+from ._base import AbstractScene
+
+if TYPE_CHECKING:
+    from typing import ClassVar as AbstractClassVar
+
+    from equinox import AbstractVar
+else:
+    from equinox import AbstractClassVar, AbstractVar
 
 __all__ = ["AbstractSpecScene"]
 
 
-def checked_route(route: str) -> str:
-    if route not in ROUTES:
-        raise ValueError(f"route={route!r}; allowed: {', '.join(ROUTES)}.")
-    return route
-
-
-class AbstractSpecScene(eqx.Module):
+class AbstractSpecScene(AbstractScene):
     """A scene given by its energies and constraints; ``route`` picks the equations (see
     :data:`~nhsde.mechanics.ROUTES`).
 
-    ``dependent`` is the Voronets choice of dependent velocities and
-    ``stabilization`` the Baumgarte rate used by the routes with all velocities.
+    A concrete spec scene declares, besides ``name``, ``Parameters`` and ``params``:
+
+    - ``coordinates`` (class variable): the names of ``q``;
+    - ``terms``: the :class:`~nhsde.mechanics.MechanicalSpec` functions by keyword
+      (``kinetic_energy`` or ``mass_matrix``, ``potential``, ``constraints``,
+      ``holonomic``, ``servo``, ``dissipation``, ``noise_force``, …), a class variable or a property;
+    - ``dependent`` (class variable): the Voronets choice of dependent velocities
+      of the reduced routes (``None``: chosen by pivoting at the initial configuration);
+    - ``stabilization`` (class variable, default 10/s): the Baumgarte rate of the
+      routes with all velocities;
+    - a static field ``route`` and ``configuration() -> (q, q̇)``.
+
+    ``spec()``, ``form()``, ``build()`` and ``initial_state()`` follow from these.
     """
 
-    params: eqx.AbstractVar[AbstractParameters]
-    route: eqx.AbstractVar[str]
-    dependent: ClassVar[tuple[str, ...]]
-    stabilization: ClassVar[float] = 0.0
+    route: AbstractVar[str]
+    coordinates: AbstractClassVar[tuple[str, ...]]
+    terms: AbstractVar[Mapping[str, Any]]
+    dependent: ClassVar[tuple[str, ...] | None] = None
+    stabilization: ClassVar[float] = 10.0
+
+    def __check_init__(self):
+        if self.route not in ROUTES:
+            raise ValueError(f"route={self.route!r}; allowed: {', '.join(ROUTES)}.")
 
     @abc.abstractmethod
+    def configuration(self) -> tuple[Any, Any]:
+        """``(q, q̇)`` of the initial state (velocities on the constraints)."""
+
     def spec(self) -> MechanicalSpec:
         """The mechanical specification."""
-
-    @abc.abstractmethod
-    def configuration(self):
-        """``(q, q̇)`` of the initial state (velocities on the constraints)."""
+        return MechanicalSpec(coordinates=self.coordinates, params=self.params, **self.terms)
 
     def form(self) -> AbstractForm:
         q, _ = self.configuration()

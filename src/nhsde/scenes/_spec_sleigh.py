@@ -17,9 +17,8 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from .._params import sqrt_intensity
-from ..mechanics import MechanicalSpec
 from ._sleigh import SleighParameters
-from ._spec_scene import AbstractSpecScene, checked_route
+from ._spec_scene import AbstractSpecScene
 
 __all__ = ["ChaplyginSleighFromSpec"]
 
@@ -50,26 +49,19 @@ def _force_and_torque(q, v, pi, t, p):
 class ChaplyginSleighFromSpec(AbstractSpecScene):
     """Chaplygin sleigh with friction and random force/torque, from its Lagrangian."""
 
+    name: ClassVar[str] = "chaplygin-sleigh-from-spec"
+    Parameters: ClassVar[type[SleighParameters]] = SleighParameters
+    coordinates: ClassVar[tuple[str, ...]] = ("x", "y", "theta")
+    terms: ClassVar[dict] = dict(
+        kinetic_energy=_kinetic, constraints=_knife, dissipation=_dissipation, noise_force=_force_and_torque
+    )
+    dependent: ClassVar[tuple[str, ...]] = ("y",)
+
     params: SleighParameters
     route: str = eqx.field(static=True)
-    dependent: ClassVar[tuple[str, ...]] = ("y",)
-    stabilization: ClassVar[float] = 10.0
-
-    Parameters: ClassVar[type[SleighParameters]] = SleighParameters
 
     def __init__(self, *, route: str = "multipliers", **params):
-        self.params = SleighParameters(**params)
-        self.route = checked_route(route)
-
-    def spec(self) -> MechanicalSpec:
-        return MechanicalSpec(
-            coordinates=("x", "y", "theta"),
-            params=self.params,
-            kinetic_energy=_kinetic,
-            constraints=_knife,
-            dissipation=_dissipation,
-            noise_force=_force_and_torque,
-        )
+        self.params, self.route = SleighParameters(**params), route
 
     def configuration(self):
         """Moving straight ahead at unit speed from the origin."""
