@@ -1,8 +1,8 @@
 """The import graph, read from the source: layers only point down, no cycle, no private name crosses a file.
 
 Layers, lowest first (a module may import from its own layer or any lower one):
-shared checks → parameters, Brownian driver → system → noise, mechanics, bodies (specs) → scenes →
-ensemble, options, solvers → simulate → statistics, analysis, work precision, plots → fit → runs (and the CLI)
+shared checks → parameters, Brownian driver (and the weak scheme's increments it draws) → system →
+noise, mechanics, bodies (specs) → scenes → ensemble, options, solvers → simulate → statistics, analysis, work precision, plots → fit → runs (and the CLI)
 → the package's top level.
 """
 
@@ -13,7 +13,7 @@ SRC = pathlib.Path(__file__).resolve().parents[1] / "src" / "nhsde"
 
 LAYERS = [
     {"_misc"},
-    {"_params", "_brownian"},
+    {"_params", "_brownian", "_weak"},
     {"_system"},
     {"noise", "mechanics", "bodies"},
     {"scenes"},
