@@ -318,7 +318,20 @@ class HamiltonianForm(AbstractForm):
         return tuple((name, "velocity", i) for i, name in enumerate(_velocity_names(self.spec, range(self.spec.n))))
 
 
-class MultiplierForm(AbstractForm):
+class _AbstractAllVelocitiesForm(AbstractForm):
+    """A route whose velocity part is all of ``q̇`` (multipliers, Gauss): state ``[π, q, q̇]``."""
+
+    def _velocity(self, t, q, x, pi, p):
+        return x
+
+    def _pack(self, q, v, pi, t, p):
+        return v
+
+    def _velocity_layout(self):
+        return _velocity_names(self.spec, range(self.spec.n)), ("velocity",) * self.spec.n
+
+
+class MultiplierForm(_AbstractAllVelocitiesForm):
     """Route (c): Lagrange's equations with multipliers, S1 (2.3); state ``[π, q, q̇]``.
 
     Observables ``lambda_j``: the multipliers of the constraint rows (ideal, then
@@ -335,15 +348,6 @@ class MultiplierForm(AbstractForm):
 
     def _noise(self, t, q, x, pi, p):
         return multiplier_noise(self.spec, q, x, pi, t, p)[0]
-
-    def _velocity(self, t, q, x, pi, p):
-        return x
-
-    def _pack(self, q, v, pi, t, p):
-        return v
-
-    def _velocity_layout(self):
-        return _velocity_names(self.spec, range(self.spec.n)), ("velocity",) * self.spec.n
 
     def _extra_observables(self):
         return tuple((f"lambda_{j}", "multiplier", j) for j in range(self.spec.n_ideal + self.spec.n_servo))
@@ -362,7 +366,7 @@ class MultiplierForm(AbstractForm):
         return spec.displacement_constraints(q, pi, t, spec.params).T @ self.multipliers(q, qdot, pi, t)
 
 
-class GaussForm(AbstractForm):
+class GaussForm(_AbstractAllVelocitiesForm):
     """Route (d): accelerations of least compulsion, S1 (2.10); state ``[π, q, q̇]``."""
 
     spec: MechanicalSpec
@@ -375,15 +379,6 @@ class GaussForm(AbstractForm):
 
     def _noise(self, t, q, x, pi, p):
         return gauss_noise(self.spec, q, x, pi, t, p)
-
-    def _velocity(self, t, q, x, pi, p):
-        return x
-
-    def _pack(self, q, v, pi, t, p):
-        return v
-
-    def _velocity_layout(self):
-        return _velocity_names(self.spec, range(self.spec.n)), ("velocity",) * self.spec.n
 
     def compulsion(self, q, qdot, qddot, pi=None, t: ArrayLike = 0.0):
         """Gauss's compulsion ``Z = ½ (q̈ − M⁻¹F)ᵀ M (q̈ − M⁻¹F)`` of accelerations ``q̈`` (S1 (2.10))."""
