@@ -54,7 +54,8 @@ THETA = np.linspace(0.0, np.pi, 400)
 
 
 def nutation_samples(scene, y0, key, t1=40.0, burn_in=20.0):
-    """θ at t = burn_in, burn_in + 2, …, t1 for every path (Heun, dt = 0.01)."""
+    """θ at t = burn_in, burn_in + 2, …, t1 for every path (Heun's method, second order in the drift, dt = 0.01:
+    Euler–Heun biases the stationary E[H] by about −6 % at this step)."""
     ens = nhsde.simulate(
         scene.build(),
         y0,
@@ -62,7 +63,7 @@ def nutation_samples(scene, y0, key, t1=40.0, burn_in=20.0):
         n_paths=y0.shape[0],
         t1=t1,
         dt=0.01,
-        solver="heun",
+        solver="heun2",
         save=nhsde.Save(names=("theta",), n=int(t1 / 2) + 1, paths=True),
     )
     return np.asarray(ens.paths[:, int(burn_in / 2) :, 0])

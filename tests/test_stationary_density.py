@@ -202,3 +202,33 @@ def test_refusals_name_the_failing_condition():
         stationary_density(conformal(), lambda x, p: 0.5 * x[1] ** 2)
     with pytest.raises(ValueError, match=r"friction='mu', noise='nu'"):
         stationary_density(ball.build(), lambda x, p: 0.5 * x @ x, friction="mu")
+
+
+def test_the_default_quadrature_refines_until_the_integral_converges():
+    """A 2-D Duffing oscillator's Gibbs density ∝ exp(−α(p²/2 + q²/2 + q⁴/4)), α = 4ε/ν: 96 nodes per dimension
+    used to be refused ("did not converge"; 192 converge). Var p = 1/α exactly, Var q by an independent 1-D
+    quadrature (scipy)."""
+    import scipy.integrate
+
+    eps, nu = 0.5, 1.0
+    system = system_of(
+        lambda t, y, p: jnp.stack([y[1], -y[0] - y[0] ** 3 - 2 * p.eps * y[1]]),
+        ("q", "p"),
+        ("independent_coordinate", "momentum"),
+        eps=eps,
+        nu=nu,
+    )
+
+    def hamiltonian(x, p):
+        return x[1] ** 2 / 2 + x[0] ** 2 / 2 + x[0] ** 4 / 4
+
+    with pytest.raises(ValueError, match="did not converge with quadrature_nodes=96"):
+        stationary_density(system, hamiltonian, quadrature_nodes=96)  # a given number is checked, not refined
+    density = stationary_density(system, hamiltonian)
+    alpha = 4 * eps / nu
+    weight = lambda q, j: q**j * np.exp(-alpha * (q**2 / 2 + q**4 / 4))
+    var_q = (
+        scipy.integrate.quad(weight, -np.inf, np.inf, args=(2,))[0]
+        / scipy.integrate.quad(weight, -np.inf, np.inf, args=(0,))[0]
+    )
+    np.testing.assert_allclose(np.diag(np.asarray(density.cov)), [var_q, 1 / alpha], rtol=1e-9)

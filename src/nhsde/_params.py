@@ -30,9 +30,11 @@ def _as_leaf(value):
     if isinstance(value, (bool, np.bool_, str, bytes)) or value is None:
         return value
     try:
-        return jnp.asarray(value)
+        leaf = jnp.asarray(value)
     except (TypeError, ValueError):
         return value
+    # physical constants are reals: a whole number given (eps=0) becomes the default float
+    return leaf.astype(jnp.result_type(float)) if jnp.issubdtype(leaf.dtype, jnp.integer) else leaf
 
 
 def parameter(*, default, lower: float | None = None, strict: bool = False, doc: str = "", per_channel: bool = False):

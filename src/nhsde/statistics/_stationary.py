@@ -117,7 +117,7 @@ def stationary_density(
     noise: str = "nu",
     points=None,
     rtol: float = 1e-7,
-    quadrature_nodes: int = 96,
+    quadrature_nodes: int | None = None,
 ) -> StationaryDensity:
     """The exact stationary density ``c N exp(−αH)`` of S0 Statements 1–2, or a ``ValueError`` naming the failing
     condition.
@@ -127,6 +127,8 @@ def stationary_density(
     - ``invariant_density(x, params) > 0``: ``N`` of Statement 2 (default 1: Statement 1).
     - ``friction``, ``noise``: names of the parameters that switch friction and noise off at 0.
     - ``points``: test points ``(n, k)`` for the conditions (default: 64 standard normal points).
+    - ``quadrature_nodes``: Gauss–Legendre nodes per dimension for the normalising integral; by default they are
+      doubled from 96 until the integral converges (at most 2²² points), and a given number is only checked.
     """
     system = _normal_ito_system(system)
     layout = system.layout
@@ -348,9 +350,16 @@ def _check_integrability(log_rho, k, dtype) -> None:
         )
 
 
+QUADRATURE_NODES = 96
+"""Gauss–Legendre nodes per dimension the normalising integral starts from."""
+QUADRATURE_POINTS = 2**22
+"""The most quadrature points the automatic refinement uses (nodes per dimension ** dimensions)."""
+
+
 def _quadrature(log_rho, k, dtype, n):
-    """``(log ∫ρ, mean, cov)`` by Gauss–Legendre on ``x = c₀ + s tan θ``; a second pass recentres, a third halves the
-    nodes to check convergence."""
+    """``(log ∫ρ, mean, cov)`` by Gauss–Legendre on ``x = c₀ + s tan θ``; a second pass recentres; the nodes are
+    doubled from :data:`QUADRATURE_NODES` until halving them changes ``log ∫ρ`` by at most 1e-8 (``n`` given: that
+    many nodes, checked the same way)."""
 
     def rule(nodes):
         theta, w = np.polynomial.legendre.leggauss(nodes)
@@ -372,14 +381,20 @@ def _quadrature(log_rho, k, dtype, n):
         xc = x - mean
         return top + jnp.log(z), mean, (p[:, None] * xc).T @ xc / z
 
-    full, half = rule(n), rule(n // 2)
-    _, mean, cov = integrate(jnp.zeros(k, dtype), jnp.ones(k, dtype), *full)
+    given = n is not None
+    n = QUADRATURE_NODES if n is None else n
+    _, mean, cov = integrate(jnp.zeros(k, dtype), jnp.ones(k, dtype), *rule(n))
     centre, scale = mean, 2 * jnp.sqrt(jnp.diagonal(cov))
-    log_z, mean, cov = integrate(centre, scale, *full)
-    log_z_half, _, _ = integrate(centre, scale, *half)
-    if not abs(float(log_z - log_z_half)) <= 1e-8:
-        raise ValueError(
-            f"stationary_density: the normalising integral did not converge with quadrature_nodes={n} "
-            f"(log ∫ changes by {float(log_z - log_z_half):.3g} from {n // 2} nodes); raise quadrature_nodes."
-        )
-    return log_z, mean, cov
+    log_z_half, _, _ = integrate(centre, scale, *rule(n // 2))
+    while True:  # double the nodes until halving them no longer changes the integral
+        log_z, mean, cov = integrate(centre, scale, *rule(n))
+        change = float(log_z - log_z_half)
+        if abs(change) <= 1e-8:
+            return log_z, mean, cov
+        if given or (2 * n) ** k > QUADRATURE_POINTS:
+            raise ValueError(
+                f"stationary_density: the normalising integral did not converge with quadrature_nodes={n} "
+                f"(log ∫ changes by {change:.3g} from {n // 2} nodes); pass a larger quadrature_nodes "
+                f"(nodes per dimension; {k} dimensions) or rescale the variables."
+            )
+        n, log_z_half = 2 * n, log_z
