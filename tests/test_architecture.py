@@ -2,8 +2,8 @@
 
 Layers, lowest first (a module may import from its own layer or any lower one):
 shared checks → parameters, Brownian driver (and the weak scheme's increments it draws) → system →
-noise, mechanics, bodies (specs) → scenes → ensemble, options, solvers → simulate → statistics, analysis, work precision, plots → fit → runs (and the CLI)
-→ the package's top level.
+noise, mechanics, bodies (specs) → scenes → ensemble, options, solvers → simulate →
+statistics, analysis, work precision, plots → fit → runs (and the CLI) → the package's top level.
 """
 
 import ast

@@ -14,6 +14,7 @@ interface: a system's ``params`` is any pytree, and its
 from __future__ import annotations
 
 import dataclasses
+from typing import Any, cast
 
 import equinox as eqx
 import jax
@@ -88,7 +89,7 @@ def _check_leaf(owner: str, f: dataclasses.Field, value) -> None:
     kind = getattr(value, "dtype", None)
     if kind is None or not (jnp.issubdtype(kind, jnp.floating) or jnp.issubdtype(kind, jnp.integer)):
         raise TypeError(f"{owner}: parameter {f.name}={value!r}; expected a real number.")
-    if not f.metadata["per_channel"] and np.ndim(f.default) == 0 and np.ndim(value) != 0:
+    if not f.metadata["per_channel"] and np.ndim(cast(Any, f.default)) == 0 and np.ndim(value) != 0:
         raise ValueError(f"{owner}: parameter {f.name} has shape {np.shape(value)}; {f.name} is one number.")
     if not is_concrete(value):
         return  # traced: checked by `validated` at run time

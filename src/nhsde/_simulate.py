@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from typing import Literal, cast
 
 import diffrax as dfx
@@ -241,7 +242,7 @@ def _run(system: StochasticSystem, needs: SolverNeeds, y0, key, first_path, abou
 
         start = (zeros.add_paths(obs0, valid0), tally(none_failed, bad0, 0), meter_state)
         (sums, failures, meter_state), rest = jax.lax.scan(scan_body, start, jnp.arange(1, plan.n_chunks))
-        if keep:
+        if rest is not None:
             obs_all = jnp.concatenate([obs0[None], rest[0]])
             bad_all = jnp.concatenate([bad0[None], rest[1]])
     else:
@@ -267,14 +268,14 @@ def _run(system: StochasticSystem, needs: SolverNeeds, y0, key, first_path, abou
         (sums, failures, meter_state), rest = jax.lax.scan(
             round_body, (zeros, none_failed, meter_state), jnp.arange(plan.n_chunks // n_dev)
         )
-        if keep:
+        if rest is not None:
             obs_all, bad_all = rest
             obs_all = obs_all.reshape(-1, *obs_all.shape[2:])
     meter.close(meter_state)
     failed = paths = None
     if keep:
-        failed = bad_all.reshape(-1)[: plan.n_paths]
-        paths = obs_all.reshape(total, plan.n_save, -1)[: plan.n_paths]
+        failed = bad_all.reshape(-1)[: plan.n_paths]  # pyright: ignore[reportPossiblyUnbound]
+        paths = obs_all.reshape(total, plan.n_save, -1)[: plan.n_paths]  # pyright: ignore[reportPossiblyUnbound]
     ts = jnp.linspace(plan.t0, plan.t1, plan.n_save, dtype=y0.dtype)
     return ts, sums, failures, failed, paths
 
@@ -283,7 +284,7 @@ def _run(system: StochasticSystem, needs: SolverNeeds, y0, key, first_path, abou
 def _linear_propagator(system: StochasticSystem, needs: SolverNeeds, params, dt):
     """``R(A·dt)``: one noiseless step of the solver on ``dZ = A Z dt`` from each unit vector, ``A`` the declared
     linear drift (the noise draw is multiplied by a zero diffusion)."""
-    a = system.linear_drift(params).astype(dt.dtype)
+    a = cast(Callable, system.linear_drift)(params).astype(dt.dtype)  # declared: checked by the caller
     d = a.shape[0]
     increment = system.noise.block_increment(jr.key(0), jnp.int32(0), dt, (system.noise_dim,), 1, needs.levy_area)
     path = StepIncrement(jax.tree_util.tree_map(lambda x: x[0], increment), needs.levy_area)
