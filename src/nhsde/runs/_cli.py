@@ -3,15 +3,19 @@
 Both ``simulate`` modes write the same netCDF run file (``format = "nhsde-run"``,
 see :func:`~nhsde.runs.run`); ``nhsde simulate SCENE --out FILE`` adds the
 forward-mode derivatives ``d_mean_d_eps``, ``d_mean_d_nu``, ``d_cov_d_eps``,
-``d_cov_d_nu`` over ``time × name`` (``× name2``).
+``d_cov_d_nu`` over ``time × name`` (``× name2``).  Before it simulates, the
+command prints ``paths × steps`` and, for a run long enough, a rough time from
+a timed pilot.  Bad input (a run file, an option, an output path) ends it with
+a one-line message and exit status 2; a run that fails, with status 1.
 """
 
 from __future__ import annotations
 
 import argparse
-import math
+import contextlib
 import re
 import sys
+import time
 from pathlib import Path
 from typing import cast
 
@@ -95,9 +99,62 @@ def _fmt(mean, se) -> str:
 
 
 def _progress_meter(args):
+    """A progress bar with ``--progress``, or by default when stderr is a terminal."""
     import diffrax as dfx
 
-    return dfx.TqdmProgressMeter() if args.progress else None
+    show = sys.stderr.isatty() if args.progress is None else args.progress
+    return dfx.TqdmProgressMeter() if show else None
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.1f} s"
+    return f"{seconds / 60:.1f} min" if seconds < 7200 else f"{seconds / 3600:.1f} h"
+
+
+def _plan(config, n_paths: int, derivatives: bool = False) -> str:
+    """``paths × steps`` of a run and, unless it is about as short as a pilot, roughly how long it takes:
+    a pilot of 64 paths over at most 100 steps, run twice (the first compiles), timed and scaled."""
+    import jax
+
+    from .._ensemble import Save
+    from .._simulate import simulate
+
+    s = config.data["solver"]
+    steps = round((s["t1"] - s["t0"]) / s["dt"])
+    text = f"{n_paths} paths × {steps} steps ({s['name']}, dt = {s['dt']:g})"
+    m = min(steps, 100)
+    if n_paths * steps <= 16 * 64 * m:
+        return text
+    built = config.build()
+
+    def pilot() -> float:
+        start = time.perf_counter()
+        ens = simulate(
+            built.system,
+            built.y0,
+            built.key,
+            n_paths=64,
+            t0=s["t0"],
+            t1=s["t0"] + m * s["dt"],
+            dt=s["dt"],
+            solver=s["name"],
+            save=Save(names=built.names, n=2),
+            on_failure="exclude",
+        )
+        jax.block_until_ready(ens.mean)
+        return time.perf_counter() - start
+
+    pilot()
+    seconds = pilot() * n_paths * steps / (64 * m) * (3 if derivatives else 1)
+    return (
+        text + f", roughly {_duration(seconds)}{' with the derivatives' if derivatives else ''} "
+        f"(an estimate from a timed pilot of 64 paths × {m} steps)"
+    )
+
+
+def _saved(out: Path) -> str:
+    return f"saved {out} (netCDF{'' if out.suffix == '.nc' else ', although the name does not end in .nc'})"
 
 
 def _cmd_scenes(args) -> int:
@@ -111,15 +168,17 @@ def _cmd_scenes(args) -> int:
 
 
 def _parse_set(items) -> dict[str, float]:
+    from ._config import ConfigError
+
     out = {}
     for item in items:
         if "=" not in item:
-            raise SystemExit(f"--set {item!r}: expected NAME=VALUE, e.g. --set eps=0.5.")
+            raise ConfigError(f"--set {item!r}: expected NAME=VALUE, e.g. --set eps=0.5.")
         name, value = item.split("=", 1)
         try:
             out[name] = float(value)
         except ValueError:
-            raise SystemExit(f"--set {name}={value!r}: not a number.") from None
+            raise ConfigError(f"--set {name}={value!r}: not a number.") from None
     return out
 
 
@@ -128,23 +187,20 @@ def _scene_config(args):
     from ..scenes import get_scene
     from ._config import ConfigError, RunConfig
 
-    try:
-        get_scene(args.scene)
-    except ValueError as e:
-        raise SystemExit(f"nhsde simulate: {e}") from None
+    get_scene(args.scene)  # a ValueError names the known scenes
     raw = {
         "scene": args.scene,
         "seed": args.seed,
         "precision": "float64" if args.x64 else "float32",
         "parameters": _parse_set(args.set),
         "solver": {"name": args.solver, "dt": args.dt, "t1": args.t1},
-        "paths": {"n": args.paths, "chunk": 64 * max(1, math.ceil(args.paths / 64))},
+        "paths": {"n": args.paths, "chunk": 64 * max(1, -(-args.paths // 64))},
         "statistics": {"save_points": args.save_points},
     }
     try:
         return RunConfig.from_dict(raw)
     except ConfigError as e:
-        raise SystemExit(f"nhsde simulate: {_as_flags(str(e))}") from None
+        raise ConfigError(_as_flags(str(e)), e.key) from None
 
 
 def _cmd_simulate_scene(args) -> int:
@@ -153,10 +209,10 @@ def _cmd_simulate_scene(args) -> int:
     import jax.numpy as jnp
 
     from .. import statistics
-    from .._ensemble import Save, SimulationError
+    from .._ensemble import Save
     from .._simulate import simulate
     from ..scenes import ball_covariances
-    from ._store import Pieces, dataset, provenance, write
+    from ._store import Pieces, claim, dataset, provenance, write
 
     for name, default in _SCENE_DEFAULTS.items():
         if getattr(args, name) is None:
@@ -184,22 +240,25 @@ def _cmd_simulate_scene(args) -> int:
     p = built.system.params
     # at ν = 0 paths scale like √ν: the ν-derivative does not exist and is reported as nan
     argnums = (0, 1) if float(p.nu) > 0 else (0,)
-    try:
+    out = Path(args.out) if args.out else None
+    with claim(out, config) if out else contextlib.nullcontext():
+        print(_plan(config, args.paths, derivatives=True), flush=True)
         (d_mean, d_cov), ens = jax.jacfwd(statistics_at, argnums=argnums, has_aux=True)(p.eps, p.nu)
-    except (ValueError, TypeError, SimulationError) as e:
-        raise SystemExit(f"nhsde simulate: {e}") from None
-    if len(argnums) == 1:
-        d_mean, d_cov = (d_mean[0], jnp.full_like(d_mean[0], jnp.nan)), (d_cov[0], jnp.full_like(d_cov[0], jnp.nan))
-    pieces = Pieces()
-    pieces.add(ens, keep_paths=False)
-    tn, tnn = ("time", "name"), ("time", "name", "name2")
-    derivatives = {
-        "d_mean_d_eps": (tn, np.asarray(d_mean[0]), {"long_name": "forward-mode derivative of mean in eps"}),
-        "d_mean_d_nu": (tn, np.asarray(d_mean[1]), {"long_name": "forward-mode derivative of mean in nu"}),
-        "d_cov_d_eps": (tnn, np.asarray(d_cov[0]), {"long_name": "forward-mode derivative of cov in eps"}),
-        "d_cov_d_nu": (tnn, np.asarray(d_cov[1]), {"long_name": "forward-mode derivative of cov in nu"}),
-    }
-    ds = dataset(config, built, pieces, provenance(), extra=derivatives)
+        if len(argnums) == 1:
+            nan = jnp.full_like(d_mean[0], jnp.nan), jnp.full_like(d_cov[0], jnp.nan)
+            d_mean, d_cov = (d_mean[0], nan[0]), (d_cov[0], nan[1])
+        pieces = Pieces()
+        pieces.add(ens, keep_paths=False)
+        tn, tnn = ("time", "name"), ("time", "name", "name2")
+        derivatives = {
+            "d_mean_d_eps": (tn, np.asarray(d_mean[0]), {"long_name": "forward-mode derivative of mean in eps"}),
+            "d_mean_d_nu": (tn, np.asarray(d_mean[1]), {"long_name": "forward-mode derivative of mean in nu"}),
+            "d_cov_d_eps": (tnn, np.asarray(d_cov[0]), {"long_name": "forward-mode derivative of cov in eps"}),
+            "d_cov_d_nu": (tnn, np.asarray(d_cov[1]), {"long_name": "forward-mode derivative of cov in nu"}),
+        }
+        ds = dataset(config, built, pieces, provenance(), extra=derivatives)
+        if out:
+            write(ds, out)
 
     params = config.parameters()
     print(f"scene {args.scene}: " + ", ".join(f"{k}={v:g}" for k, v in params.items()))
@@ -234,10 +293,8 @@ def _cmd_simulate_scene(args) -> int:
         t = jnp.asarray(ds["time"].values[last])
         kxx, kxu, kuu = ball_covariances(t, p.eps, p.nu, p.delta)
         print(f"closed form (S0 (3.1)): k_xx={float(kxx):.6g}  k_xu={float(kxu):.6g}  k_uu={float(kuu):.6g}")
-    if args.out:
-        out = Path(args.out)
-        write(ds, out)
-        print(f"\nsaved {out} (netCDF{'' if out.suffix == '.nc' else ', although the name does not end in .nc'})")
+    if out:
+        print(f"\n{_saved(out)}")
     return 0
 
 
@@ -245,17 +302,13 @@ def _load(args, kind: str):
     """Load and validate ``--config`` (float64 on: runs keep float64 sums)."""
     import jax
 
-    from ._config import ConfigError, load_config
+    from ._config import load_config
 
     jax.config.update("jax_enable_x64", True)
-    try:
-        return load_config(args.config, kind)
-    except ConfigError as e:
-        raise SystemExit(f"nhsde {kind}: {e}") from None
+    return load_config(args.config, kind)
 
 
 def _cmd_simulate_config(args) -> int:
-    from .._ensemble import SimulationError
     from ._config import ConfigError
     from ._pieces import run
 
@@ -264,17 +317,19 @@ def _cmd_simulate_config(args) -> int:
     given += ["--x64"] if args.x64 else []
     given += ["SCENE"] if args.scene is not None else []
     if given:
-        raise SystemExit(f"nhsde simulate: {', '.join(given)} cannot be combined with --config; set them in the file.")
+        raise ConfigError(f"{', '.join(given)} cannot be combined with --config; set them in the file.")
     config = _load(args, "simulate")
     out = Path(args.out) if args.out else Path(args.config).with_suffix(".nc")
+    n, chunk = config.data["paths"]["n"], config.data["paths"]["chunk"]
+
+    def start(done):
+        resuming = f"; resuming: {done} of {-(-n // chunk)} pieces are written" if done else ""
+        print(f"{out}: {_plan(config, max(n - done * chunk, 0))} in pieces of {chunk}{resuming}", flush=True)
 
     def report(k):
         print(f"piece {k + 1} written to {out}", flush=True)
 
-    try:
-        ds = run(config, out, on_piece=report, progress_meter=_progress_meter(args))
-    except (ConfigError, ValueError, SimulationError) as e:
-        raise SystemExit(f"nhsde simulate: {e}") from None
+    ds = run(config, out, on_start=start, on_piece=report, progress_meter=_progress_meter(args))
     names = list(ds["name"].values)
     print(
         f"\n{ds.attrs['scene']}: {ds.attrs['n_used']} paths used, {ds.attrs['n_failed']} failed; "
@@ -286,31 +341,28 @@ def _cmd_simulate_config(args) -> int:
     for i, a in enumerate(names):
         for j, b in enumerate(names[: i + 1]):
             print(f"  K[{a},{b}] = {_fmt(ds['cov'][-1, i, j], ds['cov_se'][-1, i, j])}")
-    print(f"\nsaved {out}")
+    print(f"\n{_saved(out)}")
     return 0
 
 
 def _cmd_simulate(args) -> int:
+    from ._config import ConfigError
+
     if args.config is not None:
         return _cmd_simulate_config(args)
     if args.scene is None:
-        raise SystemExit("nhsde simulate: give a SCENE (see `nhsde scenes`) or --config FILE.")
+        raise ConfigError("give a SCENE (see `nhsde scenes`) or --config FILE.")
     return _cmd_simulate_scene(args)
 
 
 def _cmd_fit(args) -> int:
-    from .._ensemble import SimulationError
-    from ._config import ConfigError
     from ._fit import run_fit
 
     config = _load(args, "fit")
     out = Path(args.out) if args.out else Path(args.config).with_suffix(".nc")
-    try:
-        result, _ = run_fit(config, out)
-    except (ConfigError, ValueError, SimulationError, FloatingPointError) as e:
-        raise SystemExit(f"nhsde fit: {e}") from None
+    result, _ = run_fit(config, out)
     print(result)
-    print(f"\nsaved {out}")
+    print(f"\n{_saved(out)}")
     return 0
 
 
@@ -340,7 +392,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sim.add_argument("--x64", action="store_true", help="simulate in float64 (default float32; sums are float64)")
     sim.add_argument(
-        "--progress", action=argparse.BooleanOptionalAction, default=True, help="a progress bar (default on)"
+        "--progress",
+        action=argparse.BooleanOptionalAction,
+        help="a progress bar (default: when stderr is a terminal)",
     )
     fit = sub.add_parser(
         "fit",
@@ -354,13 +408,24 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    """Entry point of the ``nhsde`` command; returns the exit status."""
+    """Entry point of the ``nhsde`` command; returns the exit status.
+
+    0 on success; 2 for bad input (a run file, an option, an output path), 1 for
+    a run that failed (failed paths, a full disk), each with a one-line message
+    on stderr.
+    """
+    from .._ensemble import SimulationError
+
     args = build_parser().parse_args(argv)
-    if args.command == "scenes":
-        return _cmd_scenes(args)
-    if args.command == "fit":
-        return _cmd_fit(args)
-    return _cmd_simulate(args)
+    command = {"scenes": _cmd_scenes, "simulate": _cmd_simulate, "fit": _cmd_fit}[args.command]
+    try:
+        return command(args)
+    except ValueError as e:  # ConfigError, and what simulate refuses
+        message, status = str(e), 2
+    except (SimulationError, FloatingPointError, OSError) as e:
+        message, status = str(e), 1
+    print(f"nhsde {args.command}: {' '.join(message.split())}", file=sys.stderr)
+    return status
 
 
 if __name__ == "__main__":

@@ -11,7 +11,9 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import json
-import math
+import reprlib
+import stat
+import sys
 import tomllib
 from pathlib import Path
 from typing import Any, NamedTuple, cast
@@ -20,6 +22,8 @@ import jax
 import jax.numpy as jnp
 
 from .._brownian import BLOCK
+from .._options import FixedSteps
+from .._simulate import MAX_PATH_INDEX, MIN_PATHS
 from .._solvers import SOLVERS, solver_needs
 from .._system import StochasticSystem
 from ..scenes import SCENES, AbstractScene, get_scene
@@ -33,7 +37,7 @@ def x64_enabled() -> bool:
 
 
 class ConfigError(ValueError):
-    """A run file that does not describe a valid run; the message names the key (also in ``key``)."""
+    """A run file, output path or stored run that cannot be used; the message names the key (``key``) or file."""
 
     def __init__(self, message: str, key: str | None = None):
         super().__init__(message)
@@ -41,6 +45,11 @@ class ConfigError(ValueError):
 
 
 _REQUIRED = object()
+_INT64 = 2**63
+MAX_STEPS = FixedSteps.max_steps
+"""Steps per path a run may take: :class:`~nhsde.FixedSteps`' default budget."""
+MAX_FILE_SIZE = 2**20
+"""Bytes a run file may have (a run file is a few hundred)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,6 +59,7 @@ class _Field:
     allowed: tuple | None = None  # for "str"
     minimum: float | None = None  # for numbers
     strict: bool = False  # minimum excluded
+    maximum: int | None = None  # for "int"
     multiple_of: int | None = None  # for "int"
 
 
@@ -57,7 +67,7 @@ def _schema(kind: str) -> dict:
     """The allowed keys; ``"scene-…"`` tables depend on the scene."""
     schema: dict[str, Any] = {
         "scene": _Field("str"),
-        "seed": _Field("int", 0, minimum=0),
+        "seed": _Field("int", 0, minimum=0, maximum=_INT64 - 1),
         "precision": _Field("str", "float64", allowed=("float32", "float64")),
         "options": "scene-options",
         "parameters": "scene-parameters",
@@ -66,12 +76,12 @@ def _schema(kind: str) -> dict:
             "name": _Field("str", "euler", allowed=tuple(SOLVERS)),
             "dt": _Field("float", minimum=0, strict=True),
         },
-        "paths": {"n": _Field("int", minimum=1)},
+        "paths": {"n": _Field("int", minimum=MIN_PATHS, maximum=MAX_PATH_INDEX)},
         "statistics": {"save": _Field("names", None)},
     }
     if kind == "simulate":
         schema["solver"] |= {"t0": _Field("float", 0.0), "t1": _Field("float")}
-        schema["paths"] |= {"chunk": _Field("int", 8192, minimum=BLOCK, multiple_of=BLOCK)}
+        schema["paths"] |= {"chunk": _Field("int", 8192, minimum=BLOCK, maximum=MAX_PATH_INDEX + 1, multiple_of=BLOCK)}
         schema["statistics"] |= {"save_points": _Field("int", 11, minimum=2), "keep_paths": _Field("bool", False)}
     else:
         schema["fit"] = {
@@ -103,23 +113,30 @@ def _is_kind(kind: str, value: object) -> bool:
 def _check(key: str, field: _Field, value: Any):
     if not _is_kind(field.kind, value):
         expected = _EXPECTED.get(field.kind, "an array of strings")
-        raise ConfigError(f"{key}: expected {expected}, got {_type_name(value)} {value!r}.", key)
+        raise ConfigError(f"{key}: expected {expected}, got {_type_name(value)} {reprlib.repr(value)}.", key)
     if field.kind == "float":
+        if not abs(value) <= sys.float_info.max:  # inf, nan, an integer beyond every float
+            raise ConfigError(f"{key} = {reprlib.repr(value)}: must be finite.", key)
         value = float(value)
-        if not math.isfinite(value):
-            raise ConfigError(f"{key} = {value}: must be finite.", key)
     if (
         field.kind in ("int", "float")
         and field.minimum is not None
         and (value < field.minimum or (field.strict and value == field.minimum))
     ):
-        raise ConfigError(f"{key} = {value}: must be {'>' if field.strict else '≥'} {field.minimum:g}.", key)
+        raise ConfigError(
+            f"{key} = {reprlib.repr(value)}: must be {'>' if field.strict else '≥'} {field.minimum:g}.", key
+        )
+    if field.maximum is not None and value > field.maximum:
+        raise ConfigError(f"{key} = {reprlib.repr(value)}: must be ≤ {field.maximum}.", key)
+    if field.kind == "int" and not -_INT64 <= value < _INT64:
+        raise ConfigError(f"{key} = {reprlib.repr(value)}: beyond the 64-bit integers.", key)
     if field.multiple_of and value % field.multiple_of:
         raise ConfigError(f"{key} = {value}: must be a multiple of {field.multiple_of}.", key)
     if field.allowed is not None and value not in field.allowed:
-        raise ConfigError(f"{key} = {value!r}: allowed values are {', '.join(map(repr, field.allowed))}.", key)
+        allowed = ", ".join(map(repr, field.allowed))
+        raise ConfigError(f"{key} = {reprlib.repr(value)}: allowed values are {allowed}.", key)
     if field.kind == "names" and len(set(value)) != len(value):
-        raise ConfigError(f"{key} = {value}: names must not repeat.", key)
+        raise ConfigError(f"{key} = {reprlib.repr(value)}: names must not repeat.", key)
     return value
 
 
@@ -150,12 +167,12 @@ def _table(prefix: str, spec: dict, raw, out: dict):
 
 
 def _scene_options(scene_cls) -> dict[str, object]:
-    """The scene's keyword options (``drift=True``, ``route="reduced"``, …) and their defaults."""
+    """The scene's keyword options a file can set (``drift=True``, ``route="reduced"``, …) and their defaults."""
     signature = inspect.signature(scene_cls.__init__)
     return {
         name: p.default
         for name, p in signature.parameters.items()
-        if p.kind is inspect.Parameter.KEYWORD_ONLY and p.default is not inspect.Parameter.empty
+        if p.kind is inspect.Parameter.KEYWORD_ONLY and isinstance(p.default, (bool, str, int, float))
     }
 
 
@@ -231,10 +248,25 @@ def _check_scene(data: dict) -> tuple[AbstractScene, StochasticSystem]:
     return scene, system
 
 
-def _check_times(data: dict):
+def _check_times_and_paths(data: dict):
+    """What ``simulate`` would refuse mid-run, refused up front: the step budget, a last piece of too few paths."""
     s = data["solver"]
     if s["t1"] <= s["t0"]:
         raise ConfigError(f"solver.t1 = {s['t1']}: must be > solver.t0 = {s['t0']}.", "solver.t1")
+    total = (s["t1"] - s["t0"]) / s["dt"]
+    if not total <= MAX_STEPS:  # also inf
+        raise ConfigError(
+            f"solver.t1 = {s['t1']}: (solver.t1 − solver.t0) / solver.dt = {total:.3g} steps per path, "
+            f"beyond the budget of {MAX_STEPS}.",
+            "solver.t1",
+        )
+    n, chunk = data["paths"]["n"], data["paths"]["chunk"]
+    if (n - 1) % chunk + 1 < MIN_PATHS:
+        raise ConfigError(
+            f"paths.n = {n}: the last piece of paths.chunk = {chunk} would hold {(n - 1) % chunk + 1} paths; "
+            f"a piece needs ≥ {MIN_PATHS}.",
+            "paths.n",
+        )
     points = data["statistics"]["save_points"]
     interval = (s["t1"] - s["t0"]) / (points - 1)
     steps = round(interval / s["dt"])
@@ -285,7 +317,7 @@ class RunConfig:
         _table("", _schema(kind), raw, data)
         scene, system = _check_scene(data)
         if kind == "simulate":
-            _check_times(data)
+            _check_times_and_paths(data)
         return cls(kind, data, Path(base), scene, system, x64_enabled())
 
     def parameters(self) -> dict[str, float]:
@@ -315,13 +347,23 @@ class RunConfig:
 
 
 def load_config(path, kind: str = "simulate") -> RunConfig:
-    """Read and validate the TOML file ``path``; :class:`ConfigError` names the offending key."""
+    """Read and validate the TOML file ``path``; :class:`ConfigError` names the offending key (or the file)."""
     path = Path(path)
     try:
-        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+        info = path.stat()
+        regular = stat.S_ISREG(info.st_mode)  # reading a FIFO would wait for a writer
+        text = path.read_bytes() if regular and info.st_size <= MAX_FILE_SIZE else b""
     except OSError as e:
         raise ConfigError(f"{path}: cannot read the file ({e.strerror}).") from None
-    except tomllib.TOMLDecodeError as e:
+    if not regular or info.st_size > MAX_FILE_SIZE:
+        raise ConfigError(f"{path}: not a regular file of at most {MAX_FILE_SIZE} bytes.")
+    try:
+        raw = tomllib.loads(text.decode("utf-8"))
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not a text file (byte {e.start} is not UTF-8).") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: not valid TOML: nested too deeply.") from None
+    except ValueError as e:  # TOMLDecodeError, or an integer of more than 4300 digits
         raise ConfigError(f"{path}: not valid TOML: {e}.") from None
     try:
         return RunConfig.from_dict(raw, kind, base=path.resolve().parent)

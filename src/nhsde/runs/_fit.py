@@ -5,7 +5,7 @@ A fit file (``format = "nhsde-fit"``) holds ``estimate``, ``se``, ``start`` over
 ``history`` over ``step × column`` (``loss`` and the parameters), and as
 attributes the fit configuration (JSON), ``chi2``, ``dof``, ``steps``,
 ``converged``, the data file with its configuration and git revision, the
-package versions and the git revision.
+package versions, the sources' SHA-256, the git revision and a checksum.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import xarray as xr
 from ..fit import FitResult, Observations, Simulated, estimate
 from ._config import ConfigError, RunConfig
 from ._pieces import need_x64
-from ._store import FIT_FORMAT, FORMAT, FORMAT_VERSION, load_run, provenance, write
+from ._store import FIT_FORMAT, FORMAT, FORMAT_VERSION, claim, load_run, provenance, seal, write
 
 __all__ = ["observations_from_run", "run_fit"]
 
@@ -54,11 +54,22 @@ def run_fit(config: RunConfig, out=None) -> tuple[FitResult, xr.Dataset]:
     The model simulates ``paths.n`` paths with ``seed`` (use a seed other than
     the data's), the solver and ``dt`` of the file, from the scene's initial
     state, at the data's save times; ``parameters`` are the start values.  With
-    ``out`` the dataset is written there (netCDF).
+    ``out`` the dataset is written there (netCDF); ``out`` is checked first, as
+    :func:`~nhsde.runs.run` checks its output.
     """
     if config.kind != "fit":
         raise ValueError(f"run_fit: this is a {config.kind!r} configuration; use run.")
     need_x64()
+    if out is None:
+        return _fit(config)
+    out = Path(out)
+    with claim(out, config, FIT_FORMAT):
+        result, ds = _fit(config)
+        write(ds, out)
+    return result, ds
+
+
+def _fit(config: RunConfig) -> tuple[FitResult, xr.Dataset]:
     d = config.data
     data_path = config.base / d["fit"]["data"]
     if not data_path.is_file():
@@ -101,6 +112,4 @@ def run_fit(config: RunConfig, out=None) -> tuple[FitResult, xr.Dataset]:
             **provenance(),
         },
     )
-    if out is not None:
-        write(ds, Path(out))
-    return result, ds
+    return result, seal(ds)

@@ -18,7 +18,7 @@ import xarray as xr
 from .._ensemble import Save
 from .._simulate import simulate
 from ._config import RunConfig, x64_enabled
-from ._store import Pieces, dataset, provenance, resume, write
+from ._store import Pieces, claim, dataset, provenance, resume, write
 
 __all__ = ["need_x64", "run"]
 
@@ -35,15 +35,19 @@ def run(
     config: RunConfig,
     out,
     *,
+    on_start: Callable[[int], None] | None = None,
     on_piece: Callable[[int], None] | None = None,
     progress_meter: dfx.AbstractProgressMeter | None = None,
 ) -> xr.Dataset:
     """Run (or resume) ``config``, writing the netCDF file ``out`` after every piece; returns the dataset written last.
 
-    An existing ``out`` of the same configuration, started by the same code, is
-    resumed from its last piece, bitwise as if never interrupted; another is
-    refused (:class:`ConfigError`).  ``on_piece(k)`` is called after piece ``k``
-    is safely written (an exception there interrupts the run as a kill would);
+    An existing ``out`` of the same configuration, intact (its checksum), started
+    by the same code (package versions and sources), is resumed from its last
+    piece, bitwise as if never interrupted; anything else there is refused
+    (:class:`ConfigError` naming the file), before any work, as is an output
+    another process is writing.  ``on_start(k)`` is called once the output is
+    checked, with the pieces already done; ``on_piece(k)`` after piece ``k`` is
+    safely written (an exception there interrupts the run as a kill would);
     ``progress_meter`` is passed to :func:`~nhsde.simulate` for every piece.
     """
     if config.kind != "simulate":
@@ -51,29 +55,32 @@ def run(
     need_x64()
     out = Path(out)
     d = config.data
-    built = config.build()
     n_total, chunk = d["paths"]["n"], d["paths"]["chunk"]
     keep = d["statistics"]["keep_paths"]
-    pieces, prov = resume(out, config) if out.exists() else (Pieces(), provenance())
-    ds = None
-    for k in range(len(pieces.sums), math.ceil(n_total / chunk)):
-        ens = simulate(
-            built.system,
-            built.y0,
-            built.key,
-            n_paths=min(chunk, n_total - k * chunk),
-            first_path=k * chunk,
-            t0=d["solver"]["t0"],
-            t1=d["solver"]["t1"],
-            dt=d["solver"]["dt"],
-            solver=d["solver"]["name"],
-            save=Save(names=built.names, n=d["statistics"]["save_points"], paths=keep, about=pieces.shift),
-            on_failure="exclude",
-            progress_meter=progress_meter,
-        )
-        pieces.add(ens, keep)
-        ds = dataset(config, built, pieces, prov)
-        write(ds, out)
-        if on_piece is not None:
-            on_piece(k)
+    with claim(out, config) as found:
+        pieces, prov = (Pieces(), provenance()) if found is None else resume(found, out, config)
+        if on_start is not None:
+            on_start(len(pieces.sums))
+        built = config.build()
+        ds = None
+        for k in range(len(pieces.sums), math.ceil(n_total / chunk)):
+            ens = simulate(
+                built.system,
+                built.y0,
+                built.key,
+                n_paths=min(chunk, n_total - k * chunk),
+                first_path=k * chunk,
+                t0=d["solver"]["t0"],
+                t1=d["solver"]["t1"],
+                dt=d["solver"]["dt"],
+                solver=d["solver"]["name"],
+                save=Save(names=built.names, n=d["statistics"]["save_points"], paths=keep, about=pieces.shift),
+                on_failure="exclude",
+                progress_meter=progress_meter,
+            )
+            pieces.add(ens, keep)
+            ds = dataset(config, built, pieces, prov)
+            write(ds, out)
+            if on_piece is not None:
+                on_piece(k)
     return dataset(config, built, pieces, prov) if ds is None else ds

@@ -1,4 +1,4 @@
-"""The netCDF run file: its dataset, provenance, atomic writing, and the checks before a run resumes.
+"""The netCDF run file: its dataset, provenance, checksum, locked atomic writing, the checks before a run resumes.
 
 A run file (``format = "nhsde-run"``, read with ``xarray.open_dataset(path,
 engine="h5netcdf")``) holds ``mean``, ``cov``, ``mean_se``, ``cov_se`` over
@@ -8,20 +8,33 @@ float64 moment sums of every piece (``piece_sum_z``, ``piece_sum_zz``,
 ``piece_n_used``, ``piece_n_failed`` over ``piece``), optionally every path
 (``paths`` over ``path × time × name``, ``failed``), and as attributes the
 validated configuration (JSON), the scene's parameters, solver, times, seed and
-key data, counts, whether the run is complete, the package versions and the git
-revision.  ``nhsde simulate SCENE`` adds ``d_mean_d_eps``, ``d_mean_d_nu``,
+key data, counts, whether the run is complete, the package versions, the
+SHA-256 of the package's sources (``source``), the git revision (information
+only) and a ``checksum`` (SHA-256 of the data variables and the other
+attributes).  ``nhsde simulate SCENE`` adds ``d_mean_d_eps``, ``d_mean_d_nu``,
 ``d_cov_d_eps``, ``d_cov_d_nu``.
+
+Every file is written to ``PATH.partial`` (created afresh: a link there is
+replaced, never followed), synced and renamed to ``PATH``; the writer holds
+``PATH.lock`` (``flock``) meanwhile, so a second process is refused.  An output
+path is checked before any work; a file there that cannot be read, fails its
+checksum, is of another kind or configuration, or has impossible counts, is
+refused with its name, never merged.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import datetime
+import fcntl
 import functools
+import hashlib
 import json
 import math
 import os
 import subprocess
+from collections.abc import Iterator
 from pathlib import Path
 
 import jax
@@ -32,11 +45,24 @@ import xarray as xr
 from .._ensemble import Ensemble, MomentSums
 from ._config import Built, ConfigError, RunConfig
 
-__all__ = ["FIT_FORMAT", "FORMAT", "FORMAT_VERSION", "Pieces", "dataset", "git_revision", "load_run", "versions"]
+__all__ = [
+    "FIT_FORMAT",
+    "FORMAT",
+    "FORMAT_VERSION",
+    "Pieces",
+    "checksum",
+    "claim",
+    "dataset",
+    "git_revision",
+    "load_run",
+    "source_hash",
+    "versions",
+]
 
 FORMAT = "nhsde-run"
 FIT_FORMAT = "nhsde-fit"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+_PACKAGE = Path(__file__).resolve().parents[1]  # the nhsde package as imported
 
 _SUMS = ("piece_sum_z", "piece_sum_zz", "piece_sum_zzz", "piece_sum_zzzz")
 
@@ -74,9 +100,19 @@ def git_revision() -> str:
     return head + ("+dirty" if status else "")
 
 
+def source_hash(package: Path = _PACKAGE) -> str:
+    """SHA-256 of the package's Python sources (``nhsde/**/*.py`` as imported): the code a run's numbers come from."""
+    h = hashlib.sha256()
+    for f in sorted(package.rglob("*.py")):
+        data = f.read_bytes()
+        h.update(f"{f.relative_to(package).as_posix()} {len(data)}\n".encode() + data)
+    return h.hexdigest()
+
+
 def provenance() -> dict:
     return {
         "versions": json.dumps(versions(), sort_keys=True),
+        "source": source_hash(),
         "git_revision": git_revision(),
         "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
     }
@@ -174,46 +210,163 @@ def dataset(config: RunConfig, built: Built, pieces: Pieces, prov: dict, extra: 
     }
     ts = np.linspace(d["solver"]["t0"], d["solver"]["t1"], d["statistics"]["save_points"])
     names = list(built.names)
-    return xr.Dataset(
+    ds = xr.Dataset(
         data_vars,
         coords={"time": ts, "name": names, "name2": names, "role": ("name", list(built.roles))},
         attrs=attrs,
     )
+    return seal(ds)
+
+
+def checksum(ds: xr.Dataset) -> str:
+    """SHA-256 of ``ds``' data variables and attributes (but ``checksum``): name, dtype, shape and bytes of each."""
+    h = hashlib.sha256()
+    items = [("var " + str(k), ds[k].values) for k in sorted(map(str, ds.data_vars))]
+    items += [("attr " + k, v) for k, v in sorted(ds.attrs.items()) if k != "checksum"]
+    for name, value in items:
+        a = np.array(value)
+        if a.dtype.kind == "f":
+            a[np.isnan(a)] = np.nan  # netCDF readers return their own NaN for a stored one
+        h.update(f"{name} {a.dtype.str} {a.shape}\n".encode() + a.tobytes())
+    return h.hexdigest()
+
+
+def seal(ds: xr.Dataset) -> xr.Dataset:
+    """``ds`` with its ``checksum`` attribute set."""
+    ds.attrs["checksum"] = checksum(ds)
+    return ds
 
 
 def write(ds: xr.Dataset, path: Path):
-    """Write ``ds`` to exactly ``path``, atomically: a reader never sees a half-written file."""
+    """Write ``ds`` to exactly ``path``, atomically: a reader never sees a half-written file.
+
+    It goes to ``PATH.partial`` first (created afresh: a link there is replaced,
+    never followed), is synced, then renamed; after a failure (a full disk)
+    ``path`` still holds what it held, and the OSError names it.
+    """
     tmp = path.with_name(path.name + ".partial")
-    ds.to_netcdf(tmp, engine="h5netcdf")
-    os.replace(tmp, path)
+    try:
+        tmp.unlink(missing_ok=True)
+        with open(tmp, "x+b") as f:  # "x": a new file, never through a link
+            ds.to_netcdf(f, engine="h5netcdf")
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException as e:
+        tmp.unlink(missing_ok=True)
+        if isinstance(e, OSError):
+            raise OSError(f"cannot write {path} ({e.strerror or e}); it keeps what it held before") from e
+        raise
 
 
 def load_run(path) -> xr.Dataset:
-    """The run (or fit) file at ``path``, read fully into memory (the file is closed)."""
-    with xr.open_dataset(path, engine="h5netcdf") as ds:
-        return ds.load()
+    """The run (or fit) file at ``path``, read fully into memory (the file is closed) and checked against its checksum.
+
+    A file that cannot be read (truncated, damaged) or does not match its
+    checksum raises :class:`ConfigError` naming it.
+    """
+    try:
+        with xr.open_dataset(path, engine="h5netcdf") as ds:
+            ds.load()
+    except Exception as e:  # a damaged file fails inside h5py in many ways
+        raise ConfigError(f"{path}: cannot be read as netCDF ({type(e).__name__}: {e}).") from None
+    if "checksum" in ds.attrs and ds.attrs["checksum"] != checksum(ds):
+        raise ConfigError(f"{path} is damaged or was edited: its contents do not match its checksum.")
+    return ds
 
 
-def resume(path: Path, config: RunConfig) -> tuple[Pieces, dict]:
-    """The pieces and provenance stored at ``path``, after checking it is this run, started by this code."""
+def _check_target(path: Path):
+    """Refuse an output path that cannot become a file written there."""
+    if path.is_dir():
+        raise ConfigError(f"{path} is a directory; give the output a file name.")
+    if not path.parent.is_dir():
+        raise ConfigError(f"{path}: the directory {path.parent} does not exist.")
+    if not os.access(path.parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"{path}: cannot write in the directory {path.parent} (permission denied).")
+    if path.is_symlink() or (path.exists() and not path.is_file()):
+        raise ConfigError(f"{path} exists and is not a regular file; choose another output file.")
+
+
+def _existing(path: Path, config: RunConfig, fmt: str) -> xr.Dataset | None:
+    """The file at the output ``path`` if any, after checking it is intact and of ``fmt`` and ``config``."""
+    if not path.exists():
+        return None
     ds = load_run(path)
-    if ds.attrs.get("format") != FORMAT:
-        raise ConfigError(f"{path} exists and is not an nhsde run file; choose another output file.")
+    kind = "run" if fmt == FORMAT else "fit"
+    if ds.attrs.get("format") != fmt or ds.attrs.get("format_version") != FORMAT_VERSION or "checksum" not in ds.attrs:
+        raise ConfigError(
+            f"{path} exists and is not an nhsde {kind} file of format version {FORMAT_VERSION}; "
+            "it is left alone: delete it or choose another output file."
+        )
     if ds.attrs["config"] != config.to_json():
         old, new = json.loads(ds.attrs["config"]), config.data
         differ = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
         raise ConfigError(
-            f"{path} holds a run of a different configuration (differs in: {', '.join(differ)}); "
+            f"{path} holds an nhsde {kind} of a different configuration (differs in: {', '.join(differ)}); "
             "delete it or choose another output file to start afresh."
         )
-    prov = {key: ds.attrs[key] for key in ("versions", "git_revision", "created")}
+    return ds
+
+
+@contextlib.contextmanager
+def claim(path: Path, config: RunConfig, fmt: str = FORMAT) -> Iterator[xr.Dataset | None]:
+    """Check the output ``path`` before any work and hold ``PATH.lock`` while writing; yields the file there, if any.
+
+    Refused with :class:`ConfigError` naming the path: a directory, a missing
+    or unwritable directory, a link or other non-file, a file that is damaged or
+    not ``fmt`` of ``config``, and a path another process is writing.
+    """
+    _check_target(path)
+    lock = path.with_name(path.name + ".lock")
+    try:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot create its lock file {lock} ({e.strerror}).") from None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            held = os.path.samestat(os.fstat(fd), os.stat(lock))  # not removed meanwhile by a writer finishing
+        except OSError:
+            held = False
+        if not held:
+            raise ConfigError(
+                f"{path} is being written by another process (it holds {lock}); "
+                "wait for it to finish or choose another output file."
+            )
+        try:
+            yield _existing(path, config, fmt)
+        finally:
+            lock.unlink(missing_ok=True)
+    finally:
+        os.close(fd)
+
+
+def resume(ds: xr.Dataset, path: Path, config: RunConfig) -> tuple[Pieces, dict]:
+    """The pieces and provenance of the run file ``ds`` at ``path`` (from :func:`claim`), after checking its counts
+    and that the same code (package versions and sources) started it."""
+    prov = {key: ds.attrs[key] for key in ("versions", "source", "git_revision", "created")}
     now = provenance()
-    for key in ("versions", "git_revision"):
+    for key in ("versions", "source"):
         if prov[key] != now[key]:
             raise ConfigError(
                 f"{path} was started with {key} {prov[key]}, now {now[key]}; its paths could differ, "
                 "so it cannot be resumed here: delete it or choose another output file."
             )
+    n, chunk = config.data["paths"]["n"], config.data["paths"]["chunk"]
+    sizes = np.array([min(chunk, n - k * chunk) for k in range(ds.sizes["piece"])])
+    used, failed = ds["piece_n_used"].values, ds["piece_n_failed"].values
+    kept = sizes.sum() if config.data["statistics"]["keep_paths"] else 0
+    if (
+        len(sizes) > -(-n // chunk)
+        or np.any(used < 0)
+        or np.any(failed < 0)
+        or not np.array_equal(used + failed, sizes)
+        or ds.sizes.get("path", 0) != kept
+    ):
+        raise ConfigError(
+            f"{path}: impossible counts: its paths used and failed do not add up to its {len(sizes)} pieces of "
+            f"{n} paths in pieces of {chunk}; delete it or choose another output file."
+        )
     shift = jnp.asarray(ds["shift"].values, jnp.float64)
     pieces = Pieces()
     for k in range(ds.sizes["piece"]):
@@ -222,7 +375,6 @@ def resume(path: Path, config: RunConfig) -> tuple[Pieces, dict]:
         pieces.sums.append(MomentSums(shift=shift, s1=s1, s2=s2, s3=s3, s4=s4, count=count))
         pieces.n_failed.append(int(ds["piece_n_failed"].values[k]))
     if "paths" in ds:
-        chunk = config.data["paths"]["chunk"]
         for i in range(0, ds.sizes["path"], chunk):
             pieces.paths.append(ds["paths"].values[i : i + chunk])
             pieces.failed.append(ds["failed"].values[i : i + chunk].astype(bool))
