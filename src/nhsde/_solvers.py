@@ -135,7 +135,7 @@ def solver_needs(solver: str | dfx.AbstractSolver, system: StochasticSystem) -> 
         raise TypeError(f"solver={solver!r}; expected one of {', '.join(SOLVERS)} or a diffrax solver object.")
     if isinstance(solver, dfx.AbstractFosterLangevinSRK):
         raise ValueError(
-            f"solver={name}: a Langevin solver needs diffrax's underdamped-Langevin terms, not a general SDE; "
+            f"solver={name!r}: a Langevin solver needs diffrax's underdamped-Langevin terms, not a general SDE; "
             f"use one of {', '.join(SOLVERS)}, or e.g. diffrax.ShARK()."
         )
     srk = isinstance(solver, dfx.AbstractSRK)
@@ -148,22 +148,22 @@ def solver_needs(solver: str | dfx.AbstractSolver, system: StochasticSystem) -> 
         interpretation = "stratonovich"
     else:
         raise ValueError(
-            f"solver={name}: not an SDE solver (diffrax marks SDE solvers as Itô or Stratonovich); "
+            f"solver={name!r}: not an SDE solver (diffrax marks SDE solvers as Itô or Stratonovich); "
             f"use one of {', '.join(SOLVERS)}, or e.g. diffrax.ShARK()."
         )
     if additive_only and not system.additive_noise:
         raise ValueError(
-            f"solver={name} needs additive noise, but this system's diffusion depends on the state; "
+            f"solver={name!r} needs additive noise, but this system's diffusion depends on the state; "
             "use 'euler', 'milstein', 'heun' or 'heun2'."
         )
     if not system.noise.continuous and not isinstance(solver, dfx.Euler):
-        raise ValueError(f"solver={name} does not apply to a system driven by jumps; use 'euler' (S0 §2, Remark).")
+        raise ValueError(f"solver={name!r} does not apply to a system driven by jumps; use 'euler' (S0 §2, Remark).")
     if isinstance(solver, ExponentialEuler) and solver.linear is None:
         if system.linear_drift is None:
             raise ValueError(
-                f"solver={name} needs the system's linear drift part (StochasticSystem.linear_drift); "
+                f"solver={name!r} needs the system's linear drift part (StochasticSystem.linear_drift); "
                 "this system does not declare one."
             )
         solver = ExponentialEuler(system.linear_drift)
-    embedded = srk and solver.tableau.b_error is not None
+    embedded = isinstance(solver, dfx.AbstractSRK) and solver.tableau.b_error is not None
     return SolverNeeds(solver, name, interpretation, additive_only, _levy_area(solver), embedded)
