@@ -321,7 +321,7 @@ def _check_linear_stability(system: StochasticSystem, needs: SolverNeeds, dt: fl
 def _wait_interruptibly(result) -> None:
     """Wait for a dispatched run while Ctrl-C stays deliverable (a blocking wait inside XLA would swallow it)."""
     if isinstance(result, jax.Array) and is_concrete(result):
-        while not result.is_ready():
+        while not result.is_ready():  # pyright: ignore[reportAttributeAccessIssue]  # jax.Array stubs omit it
             time.sleep(0.02)
 
 
