@@ -320,3 +320,11 @@ def test_ctrl_c_interrupts_a_long_solve():
     child.send_signal(signal.SIGINT)
     _, err = child.communicate(timeout=60)
     assert "KeyboardInterrupt" in err and time.monotonic() - sent < 30, err[-2000:]
+
+
+def test_whole_numbers_are_real_parameters():
+    """eps=0 used to be an integer leaf: a type-promotion error from inside JAX under strict promotion."""
+    scene = BallOnVibratingPlane(eps=2, nu=1)
+    assert jnp.issubdtype(scene.params.eps.dtype, jnp.floating)
+    ens = nhsde.simulate(scene.build(), scene.initial_state(), KEY, n_paths=64, t1=1.0, dt=0.1)
+    assert np.all(np.isfinite(ens.cov))
