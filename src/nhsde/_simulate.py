@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import time
 from collections.abc import Callable
 from typing import Literal, cast
 
@@ -318,13 +317,6 @@ def _check_linear_stability(system: StochasticSystem, needs: SolverNeeds, dt: fl
         )
 
 
-def _wait_interruptibly(result) -> None:
-    """Wait for a dispatched run while Ctrl-C stays deliverable (a blocking wait inside XLA would swallow it)."""
-    if isinstance(result, jax.Array) and is_concrete(result):
-        while not result.is_ready():  # pyright: ignore[reportAttributeAccessIssue]  # jax.Array stubs omit it
-            time.sleep(0.02)
-
-
 def _residuals_too_large(steps_per_save, chunk, state_dim, dtype) -> bool:
     return 10 * steps_per_save * chunk * state_dim * jnp.dtype(dtype).itemsize > 2**30
 
@@ -499,7 +491,6 @@ def simulate(
     ts, sums, (n_failed, first_failed), failed, paths = _run(
         system, needs, y0, key, jnp.asarray(first_path), about, plan, meter
     )
-    _wait_interruptibly(n_failed)
     mean, cov, mean_se, cov_se = sums.statistics()
     too_few = sums.count < MIN_PATHS
     overflow = ~jnp.all(jnp.array([jnp.all(jnp.isfinite(s)) for s in (mean, cov, mean_se, cov_se)]))
