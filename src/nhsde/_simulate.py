@@ -90,7 +90,7 @@ def _fixed_chunk(system, params, needs: SolverNeeds, plan: _Plan, y0, key, first
     def terms(increment, t_start):
         # the solver steps over (0, dt), so its step is exactly dt whatever the magnitude of the time
         # (float32 at t = 1e5 would round t + dt − t); the vector fields see the absolute time
-        path = StepIncrement(increment, needs.levy_area)
+        path = StepIncrement(increment=increment, levy_area=needs.levy_area)
         drift = dfx.ODETerm(lambda t, y, args: system.drift_fn(t_start + t, y, args))
         return dfx.MultiTerm(drift, dfx.ControlTerm(lambda t, y, args: system.diffusion_fn(t_start + t, y, args), path))
 
@@ -283,11 +283,12 @@ def _run(system: StochasticSystem, needs: SolverNeeds, y0, key, first_path, abou
 @eqx.filter_jit
 def _linear_propagator(system: StochasticSystem, needs: SolverNeeds, params, dt):
     """``R(A·dt)``: one noiseless step of the solver on ``dZ = A Z dt`` from each unit vector, ``A`` the declared
-    linear drift (the noise draw is multiplied by a zero diffusion)."""
+    linear drift, with a zero noise increment."""
     a = cast(Callable, system.linear_drift)(params).astype(dt.dtype)  # declared: checked by the caller
     d = a.shape[0]
-    increment = system.noise.block_increment(jr.key(0), jnp.int32(0), dt, (system.noise_dim,), 1, needs.levy_area)
-    path = StepIncrement(jax.tree_util.tree_map(lambda x: x[0], increment), needs.levy_area)
+    zero = jnp.zeros((system.noise_dim,), dt.dtype)  # the noise is switched off: a zero increment
+    increment = dfx.SpaceTimeLevyArea(dt=dt, W=zero, H=zero) if needs.levy_area is dfx.SpaceTimeLevyArea else zero
+    path = StepIncrement(increment=increment, levy_area=needs.levy_area)
     terms = dfx.MultiTerm(
         dfx.ODETerm(lambda t, y, args: a @ y),
         dfx.ControlTerm(lambda t, y, args: jnp.zeros((d, system.noise_dim), y.dtype), path),
