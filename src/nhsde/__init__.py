@@ -39,6 +39,12 @@ from ._params import (
 from ._simulate import simulate as simulate
 from ._solvers import SOLVERS as SOLVERS, ExponentialEuler as ExponentialEuler
 from ._system import StateLayout as StateLayout, StochasticSystem as StochasticSystem
+from ._weak import (
+    GaussianWeakIncrement as GaussianWeakIncrement,
+    PlatenWeak2 as PlatenWeak2,
+    ThreePointIncrement as ThreePointIncrement,
+    WeakIncrement as WeakIncrement,
+)
 from ._work_precision import (
     WorkPrecisionRow as WorkPrecisionRow,
     cheapest_setting as cheapest_setting,

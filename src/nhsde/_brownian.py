@@ -28,6 +28,8 @@ import jax.numpy as jnp
 import jax.random as jr
 from jaxtyping import Array, PRNGKeyArray, PyTree
 
+from ._weak import WeakIncrement
+
 __all__ = ["BLOCK", "AbstractDriver", "StepIncrement", "Wiener", "block_keys"]
 
 BLOCK = 64
@@ -79,6 +81,9 @@ class Wiener(AbstractDriver):
         return jnp.ones(())
 
     def block_increment(self, key, k0, dt, shape, substeps, levy_area):
+        # PlatenWeak2's three-point or Gaussian increments:
+        if isinstance(levy_area, type) and issubclass(levy_area, WeakIncrement):
+            return levy_area.block_draw(key, k0, dt, (BLOCK,) + shape, substeps)
         n = 2 if levy_area is dfx.SpaceTimeLevyArea else 1
         ks = k0 * substeps + jnp.arange(substeps, dtype=jnp.int32)
         draws = jax.vmap(lambda k: jr.normal(jr.fold_in(key, k), (n, BLOCK) + shape, dtype=dt.dtype))(ks)
@@ -103,7 +108,7 @@ class StepIncrement(dfx.AbstractBrownianPath):
     """
 
     increment: PyTree
-    levy_area: type[dfx.BrownianIncrement | dfx.SpaceTimeLevyArea] = eqx.field(static=True)
+    levy_area: type[dfx.AbstractBrownianIncrement] = eqx.field(static=True)
 
     @property
     def t0(self):
@@ -115,7 +120,7 @@ class StepIncrement(dfx.AbstractBrownianPath):
 
     def evaluate(self, t0, t1=None, left: bool = True, use_levy: bool = False):
         del t0, t1, left
-        if isinstance(self.increment, dfx.SpaceTimeLevyArea):
+        if isinstance(self.increment, dfx.AbstractBrownianIncrement):
             return self.increment if use_levy else self.increment.W
         if use_levy:
             raise ValueError("this solver needs space-time Lévy area, which the driver was not asked for.")

@@ -37,6 +37,7 @@ import jax.numpy as jnp
 from jax.scipy.linalg import expm
 
 from ._system import StochasticSystem
+from ._weak import WEAK_INCREMENTS, PlatenWeak2
 
 __all__ = ["SOLVERS", "ExponentialEuler", "SolverNeeds", "solver_needs"]
 
@@ -89,10 +90,12 @@ SOLVERS: dict[str, Callable[[], dfx.AbstractSolver]] = {
     "heun2": lambda: dfx.Heun(scan_kind="lax"),
     "sra1": lambda: dfx.SRA1(scan_kind="lax"),
     "exponential": ExponentialEuler,
+    "weak2": PlatenWeak2,
 }
 """String aliases (CLI, run files) → solver objects: Euler–Maruyama and Milstein (Itô); Euler–Heun
 (Stratonovich, Euler in the drift); Heun (Stratonovich, second order in the drift); SRA1 (additive
-noise, strong order 1.5); exponential Euler–Maruyama (exact in the linear friction)."""
+noise, strong order 1.5); exponential Euler–Maruyama (exact in the linear friction); Platen's explicit weak
+order-2.0 scheme for any noise, with three-point increments (``PlatenWeak2``)."""
 
 
 class SolverNeeds(eqx.Module):
@@ -108,12 +111,13 @@ class SolverNeeds(eqx.Module):
 
 def _levy_area(solver) -> type:
     need = getattr(solver, "minimal_levy_area", dfx.AbstractBrownianIncrement)
-    for offered in (dfx.BrownianIncrement, dfx.SpaceTimeLevyArea):
+    for offered in (dfx.BrownianIncrement, dfx.SpaceTimeLevyArea, *WEAK_INCREMENTS):
         if issubclass(offered, need):
             return offered
     raise ValueError(
         f"solver={type(solver).__name__}() needs {need.__name__}, which nhsde's counter-based driver does not "
-        "draw (it offers Brownian increments and space-time Lévy area); choose another solver."
+        "draw (it offers Brownian increments, space-time Lévy area and PlatenWeak2's increments); "
+        "choose another solver."
     )
 
 

@@ -6,6 +6,9 @@
 - The normal approximation (S0 §6): :func:`normal_approximation` over time,
   :func:`stationary_drift` in the stationary regime.
 - Exact stationary densities (S0 Statements 1–2): :func:`stationary_density`.
+- Statistics at a requested accuracy for less work: :func:`extrapolate`
+  (Richardson–Romberg / Talay–Tubaro), :func:`multilevel_monte_carlo` (Giles),
+  :func:`antithetic` paths.
 - The Fokker–Planck equation on a grid (1 and 2 components):
   :func:`stationary_fokker_planck`, :func:`fokker_planck`.
 """
@@ -21,14 +24,17 @@ from ._drift import (
     stationary_moments as stationary_moments,
     systematic_drift as systematic_drift,
 )
+from ._extrapolation import Estimate as Estimate, Extrapolation as Extrapolation, extrapolate as extrapolate
 from ._fokker_planck import (
     GridDensity as GridDensity,
     fokker_planck as fokker_planck,
     stationary_fokker_planck as stationary_fokker_planck,
 )
+from ._multilevel import MultilevelEstimate as MultilevelEstimate, multilevel_monte_carlo as multilevel_monte_carlo
 from ._normal_approximation import (
     NormalApproximation as NormalApproximation,
     normal_approximation as normal_approximation,
 )
 from ._stationary import StationaryDensity as StationaryDensity, stationary_density as stationary_density
 from ._stationary_drift import StationaryDrift as StationaryDrift, stationary_drift as stationary_drift
+from ._variance_reduction import Antithetic as Antithetic, antithetic as antithetic

@@ -1,0 +1,239 @@
+"""Richardson–Romberg (Talay–Tubaro) extrapolation of saved statistics, and the paired-path machinery it shares.
+
+A scheme of weak order ``p`` has ``E f(X_h) = E f(X) + C h^p + O(h^{p+1})``
+(Talay & Tubaro, Stoch. Anal. Appl. 8 (1990), for Euler, ``p = 1``; Kloeden &
+Platen 1992, §15.3, for higher orders), so
+
+    S_ex = (2^p S(h/2) − S(h)) / (2^p − 1)
+
+has bias ``O(h^{p+1})``; for Euler–Maruyama ``S_ex = 2 S(h/2) − S(h)``.  Both
+solves run on one Brownian path (``FixedSteps(h, brownian_dt=h/2)`` and
+``FixedSteps(h/2, brownian_dt=h/2)`` with one key), so ``S(h/2)`` and ``S(h)`` are
+strongly correlated and the Monte-Carlo error of ``S_ex`` is that of the paired
+per-path combination, not of two independent runs.
+
+Statistics of paired paths (:func:`paired_moments`).  Sets ``Z_a`` of per-path
+values on the same paths and weights ``w_a`` give ``Σ_a w_a mean(Z_a)`` and
+``Σ_a w_a cov(Z_a)``; the standard error of the first is that of the per-path
+values ``Σ_a w_a Z_a``, of the second that of the per-path products
+``ψ = Σ_a w_a (Z_a − m_a)(Z_a − m_a)ᵀ`` (the delta method: the error of the
+centring means is of higher order), ``Var ψ_ij = E ψ_ij² − (E ψ_ij)²`` with
+``E ψ_ij² = Σ_{a,b} w_a w_b E[(F_a,i F_b,i)(F_a,j F_b,j)]``, ``F = Z − m``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float, Int
+
+from .._ensemble import AbstractMoments, Save
+from .._misc import check_number, check_steps
+from .._options import Batching, FixedSteps
+from .._simulate import simulate
+from .._solvers import solver_needs
+from .._system import StochasticSystem
+from .._weak import PlatenWeak2
+from ._variance_reduction import antithetic as reflected
+
+__all__ = ["Estimate", "Extrapolation", "extrapolate"]
+
+
+class Estimate(AbstractMoments):
+    """Means and covariances of saved quantities at ``ts`` with their Monte-Carlo standard errors.
+
+    What an estimator returns; ``n_paths`` counts the sampled paths (pairs count once).
+    """
+
+    ts: Float[Array, " n"]
+    mean: Float[Array, "n k"]
+    cov: Float[Array, "n k k"]
+    mean_se: Float[Array, "n k"]
+    cov_se: Float[Array, "n k k"]
+    n_paths: Int[Array, ""]
+    names: tuple[str, ...] = eqx.field(static=True)
+    roles: tuple[str, ...] = eqx.field(static=True)
+
+    def standard_errors(self):
+        return self.mean_se, self.cov_se
+
+
+class Extrapolation(Estimate):
+    """The extrapolated moments, with ``fine``, the plain moments ``S(h/2)`` of the same paths, and
+    ``correction = S_ex − S(h/2)`` with its paired standard error: ``−correction`` estimates the bias of ``S(h/2)``,
+    ``−2^p·correction`` that of ``S(h)``."""
+
+    fine: Estimate
+    correction: Estimate
+
+
+def safe_sqrt(v):
+    pos = v > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, v, 1.0)), 0.0)
+
+
+def paired_moments(paths: Sequence[Array], weights: Sequence[float]):
+    """``(mean, cov, mean_var, cov_var)`` of ``Σ_a w_a S(Z_a)``, ``Z_a`` ``(N, n, k)`` values of the same paths.
+
+    ``S`` is the sample mean or the unbiased sample covariance; ``*_var`` are the
+    squared standard errors (see the module).
+    """
+    n = paths[0].shape[0]
+    combined = sum(w * z for w, z in zip(weights, paths, strict=True))
+    mean = jnp.mean(combined, axis=0)
+    mean_var = jnp.var(combined, axis=0, ddof=1) / n
+    centred = [z - jnp.mean(z, axis=0) for z in paths]
+    cov = jnp.zeros(mean.shape + mean.shape[-1:], mean.dtype)
+    second = jnp.zeros_like(cov)
+    for w, f in zip(weights, centred, strict=True):
+        cov = cov + w * jnp.einsum("pni,pnj->nij", f, f) / (n - 1)
+    for wa, fa in zip(weights, centred, strict=True):
+        for wb, fb in zip(weights, centred, strict=True):
+            prod = fa * fb
+            second = second + wa * wb * jnp.einsum("pni,pnj->nij", prod, prod) / n
+    cov_var = (second - cov**2) / n  # MomentSums' convention: fourth moment about the means, unbiased cov
+    return mean, cov, mean_var, cov_var
+
+
+def paths_save(save: Save | None, n_steps: int, names: tuple[str, ...]) -> Save:
+    """``save`` with per-path values kept and its number of times fixed on a grid of ``n_steps`` (the coarsest)."""
+    save = Save(names=names, n=2) if save is None else save
+    if not isinstance(save, Save):
+        raise TypeError(f"save={save!r}; expected nhsde.Save(...).")
+    n = save.n
+    if n is None:
+        n = max(k for k in range(2, 12) if n_steps % (k - 1) == 0)
+    elif n_steps % (n - 1):
+        raise ValueError(f"save.n={n}: n − 1 must divide the {n_steps} steps of the coarsest step.")
+    return Save(names=save.names, n=n, paths=True)
+
+
+def coupling_solver(solver):
+    """``solver`` if solves at different steps on one Brownian path have the law of plain solves; else raises."""
+    three_point = isinstance(solver, PlatenWeak2) and solver.increments == "three-point"
+    if three_point or (isinstance(solver, str) and solver == "weak2"):
+        raise ValueError(
+            f"solver={solver!r}: sums of three-point increments are not three-point, so a coarse solve on a shared "
+            "path does not have the law of a plain one; use nhsde.PlatenWeak2(increments='gaussian')."
+        )
+    return solver
+
+
+def coupled_paths(
+    system: StochasticSystem,
+    y0,
+    key,
+    *,
+    t0: float,
+    t1: float,
+    dts: Sequence[float],
+    brownian_dt: float,
+    solver,
+    save: Save,
+    n_paths: int,
+    antithetic: bool,
+    batching: Batching | None,
+) -> list[Array]:
+    """Per-path saved values ``(n_paths, n, k)`` of a solve at each of ``dts`` on one Brownian path of step
+    ``brownian_dt``; with ``antithetic``, then the same for the reflected paths."""
+    systems = (system, reflected(system)) if antithetic else (system,)
+    out = []
+    for s in systems:
+        for dt in dts:
+            ens = simulate(
+                s,
+                y0,
+                key,
+                n_paths=n_paths,
+                t0=t0,
+                t1=t1,
+                steps=FixedSteps(dt, brownian_dt=brownian_dt),
+                solver=solver,
+                save=save,
+                batching=batching,
+            )
+            assert ens.paths is not None
+            out.append(ens.paths)
+    return out
+
+
+def roles_of(system: StochasticSystem, names: tuple[str, ...]) -> tuple[str, ...]:
+    """The state role of each name, ``'observable'`` for derived observables."""
+    layout = system.layout
+    return tuple(layout.roles[layout.index(n)] if n in layout.names else "observable" for n in names)
+
+
+def extrapolate(
+    system: StochasticSystem,
+    y0,
+    key,
+    *,
+    n_paths: int,
+    t1: float,
+    dt: float,
+    t0: float = 0.0,
+    solver="euler",
+    order: int | None = None,
+    save: Save | None = None,
+    antithetic: bool = False,
+    batching: Batching | None = None,
+) -> Extrapolation:
+    """Richardson–Romberg extrapolation ``(2^p S(h/2) − S(h))/(2^p − 1)`` of every saved mean and covariance.
+
+    Arguments as :func:`~nhsde.simulate`, with ``dt = h`` the coarse step (``h/2``
+    must divide ``t1 − t0``).  ``order``: the weak order ``p`` of ``solver``
+    (default 2 for :class:`~nhsde.PlatenWeak2`, else 1; pass 2 for Heun or SRA1
+    on additive noise, where they are weak order 2).  ``save`` defaults to the
+    whole state at ``t0`` and ``t1``.  ``antithetic`` adds the reflected paths.
+    The standard errors are those of the paired per-path combination (module).
+    """
+    if not isinstance(system, StochasticSystem):
+        raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
+    solver_needs(coupling_solver(solver), system)
+    if order is None:
+        order = 2 if isinstance(solver, PlatenWeak2) else 1
+    p = check_number("order", order, positive=True)
+    h = check_number("dt", dt, positive=True)
+    n_steps = check_steps("dt", t1 - t0, h)
+    save = paths_save(save, n_steps, system.layout.names)
+    assert save.names is not None
+    paths = coupled_paths(
+        system,
+        y0,
+        key,
+        t0=t0,
+        t1=t1,
+        dts=(h, h / 2),
+        brownian_dt=h / 2,
+        solver=solver,
+        save=save,
+        n_paths=n_paths,
+        antithetic=bool(antithetic),
+        batching=batching,
+    )
+    share = 0.5 if antithetic else 1.0
+
+    def estimate(coarse, fine):
+        weights = [share * coarse, share * fine] * (len(paths) // 2)
+        mean, cov, mean_var, cov_var = paired_moments(paths, weights)
+        return Estimate(
+            ts=jnp.linspace(t0, t1, mean.shape[0], dtype=mean.dtype),
+            mean=mean,
+            cov=cov,
+            mean_se=safe_sqrt(mean_var),
+            cov_se=safe_sqrt(cov_var),
+            n_paths=jnp.asarray(n_paths),
+            names=names,
+            roles=roles_of(system, names),
+        )
+
+    names, c = save.names, 1 / (2**p - 1)
+    extrapolated = estimate(-c, 1 + c)
+    return Extrapolation(
+        **{f.name: getattr(extrapolated, f.name) for f in dataclasses.fields(Estimate)},
+        fine=estimate(0.0, 1.0),
+        correction=estimate(-c, c),
+    )

@@ -1,0 +1,324 @@
+"""Multilevel Monte Carlo for means and covariances of saved quantities (Giles, Oper. Res. 2008; Acta Numer. 2015).
+
+Levels ``ℓ = 0 … L`` step ``h_ℓ = h₀ 2^{−ℓ}``.  Level 0 samples ``P_0``, level
+``ℓ > 0`` the difference ``P_ℓ − P_{ℓ−1}`` of a fine solve at ``h_ℓ`` and a coarse
+solve at ``h_{ℓ−1}`` on one Brownian path (``brownian_dt = h_ℓ`` for both, one key
+per level, different keys across levels), so that
+
+    E[P_L] = E[P_0] + Σ_{ℓ=1}^{L} E[P_ℓ − P_{ℓ−1}]
+
+holds exactly: the coarse solve sums fine increments, which for Gaussian
+increments gives it the law of a plain solve at ``h_{ℓ−1}``.  A covariance is
+telescoped the same way, each level's term the difference of the unbiased
+sample covariances of its fine and coarse values on the same paths (Bierig &
+Chernov, Numer. Math. 133 (2016)); standard errors are those of the paired
+per-path combination (``paired_moments``).
+
+Samples per level for a target RMSE ``ε`` (Giles 2008, §2; cost ``C_ℓ`` in
+path-steps, level variance ``V_ℓ`` measured):
+
+    N_ℓ = ⌈2 ε⁻² √(V_ℓ/C_ℓ) Σ_k √(V_k C_k)⌉,
+
+so that the Monte-Carlo variance is ``ε²/2``; levels are added (Giles (2015),
+Algorithm 1) until the bias estimate ``max(|Ŷ_L|, |Ŷ_{L−1}|/2^α)/(2^α − 1)`` of a
+scheme of weak order ``α`` is below ``ε/√2``.  Levels run in pieces of fixed size
+``P_ℓ`` (``piece_paths`` halved per level, at least 64), piece ``j`` of level ``ℓ``
+with key ``fold_in(fold_in(key, ℓ), j)``: every piece of a level reuses one
+compiled program, and the paths of ``N_ℓ`` samples depend on ``(key, ℓ, N_ℓ)``
+only.  With the allocation fixed (``n_paths=result.n_paths_per_level``) the
+estimator is a differentiable function of the system's parameters (``jax.jacfwd``,
+``jax.grad``).  Three-point increments are refused: their sums are not three-point.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax.numpy as jnp
+import jax.random as jr
+from jaxtyping import Array, Float
+
+from .._brownian import BLOCK
+from .._ensemble import Save
+from .._misc import check_key, check_number, check_steps, is_concrete
+from .._options import AbstractSteps, Batching, FixedSteps
+from .._solvers import solver_needs
+from .._system import StochasticSystem
+from .._weak import PlatenWeak2
+from ._extrapolation import (
+    Estimate,
+    coupled_paths,
+    coupling_solver,
+    paired_moments,
+    paths_save,
+    roles_of,
+    safe_sqrt,
+)
+
+__all__ = ["MultilevelEstimate", "multilevel_monte_carlo"]
+
+
+class MultilevelEstimate(Estimate):
+    """A multilevel estimate: the moments of ``Estimate`` plus the levels that made it.
+
+    ``target`` is the statistic the levels were chosen for, ``value``/``standard_error``
+    its estimate; per level ``ℓ``: ``n_paths_per_level[ℓ] = N_ℓ``, ``level_means[ℓ] = Ŷ_ℓ``
+    (the target's level term), ``level_variances[ℓ] = V_ℓ`` (its per-sample variance),
+    ``level_costs[ℓ] = C_ℓ`` (path-steps per sample); ``bias`` is the bias estimate
+    from the finest levels; ``dt`` is ``h₀``.
+    """
+
+    value: Float[Array, ""]
+    standard_error: Float[Array, ""]
+    level_means: Float[Array, " L"]
+    level_variances: Float[Array, " L"]
+    bias: Float[Array, ""]
+    n_paths_per_level: tuple[int, ...] = eqx.field(static=True)
+    level_costs: tuple[float, ...] = eqx.field(static=True)
+    target: tuple = eqx.field(static=True)
+    dt: float = eqx.field(static=True)
+
+    @property
+    def cost(self) -> float:
+        """Path-steps of all levels, ``Σ N_ℓ C_ℓ``."""
+        return float(sum(n * c for n, c in zip(self.n_paths_per_level, self.level_costs)))
+
+
+def _target_index(target, names: tuple[str, ...]):
+    """``(kind, i, j)`` of ``target = ('mean', a)`` or ``('cov', a, b)`` among the saved ``names``."""
+    ok = isinstance(target, tuple) and (
+        (len(target) == 2 and target[0] == "mean") or (len(target) == 3 and target[0] == "cov")
+    )
+    if not ok or not all(isinstance(n, str) for n in target):
+        raise ValueError(f"target={target!r}; expected ('mean', name) or ('cov', name, name).")
+    missing = [n for n in target[1:] if n not in names]
+    if missing:
+        raise ValueError(f"target={target!r} names {missing}, which save does not keep (save.names={names}).")
+    i = names.index(target[1])
+    return target[0], i, names.index(target[-1])
+
+
+def _pick(kind, i, j, mean, cov):
+    return mean[-1, i] if kind == "mean" else cov[-1, i, j]
+
+
+class _Levels:
+    """Level runs: pieces of fixed size per level, their per-path values kept."""
+
+    def __init__(self, system, y0, key, *, t0, t1, h0, solver, save, antithetic, piece_paths, batching):
+        self.args = (system, y0)
+        self.key = key
+        self.opts = dict(t0=t0, t1=t1, solver=solver, save=save, antithetic=antithetic, batching=batching)
+        self.h0, self.piece_paths, self.antithetic = h0, piece_paths, antithetic
+        self.steps0 = round((t1 - t0) / h0)
+        self.paths: list[list[list[Array]]] = []  # level → piece → sets
+
+    def piece(self, level: int) -> int:
+        return max(BLOCK, (self.piece_paths >> level) // BLOCK * BLOCK)
+
+    def cost(self, level: int) -> float:
+        fine = self.steps0 * 2**level
+        return (2.0 if self.antithetic else 1.0) * (fine + (fine // 2 if level else 0))
+
+    def run(self, level: int, piece: int, n_paths: int) -> list[Array]:
+        h = self.h0 / 2**level
+        dts = (h, 2 * h) if level else (h,)
+        key = jr.fold_in(jr.fold_in(self.key, level), piece)
+        return coupled_paths(*self.args, key, dts=dts, brownian_dt=h, n_paths=n_paths, **self.opts)
+
+    def grow(self, level: int, n_paths: int):
+        """Run pieces until level ``level`` has ``n_paths`` samples (a multiple of its piece, or the remainder)."""
+        while len(self.paths) <= level:
+            self.paths.append([])
+        pieces, size = self.paths[level], self.piece(level)
+        while self.count(level) < n_paths:
+            pieces.append(self.run(level, len(pieces), min(size, n_paths - self.count(level))))
+
+    def count(self, level: int) -> int:
+        return sum(p[0].shape[0] for p in self.paths[level]) if level < len(self.paths) else 0
+
+    def moments(self, level: int):
+        """``(mean, cov, mean_var, cov_var)`` of the level's term ``P_ℓ − P_{ℓ−1}`` (``P_0`` at level 0)."""
+        sets = [jnp.concatenate(parts) for parts in zip(*self.paths[level], strict=True)]
+        weights = (1.0, -1.0) if level else (1.0,)
+        share = 0.5 if self.antithetic else 1.0
+        return paired_moments(sets, [share * w for w in weights] * (2 if self.antithetic else 1))
+
+
+def _allocate(variances: Sequence[float], costs: Sequence[float], rmse: float) -> list[float]:
+    """``N_ℓ = 2 ε⁻² √(V_ℓ/C_ℓ) Σ_k √(V_k C_k)`` (module)."""
+    total = sum(math.sqrt(v * c) for v, c in zip(variances, costs))
+    return [2.0 / rmse**2 * math.sqrt(v / c) * total for v, c in zip(variances, costs)]
+
+
+def multilevel_monte_carlo(
+    system: StochasticSystem,
+    y0,
+    key,
+    *,
+    t1: float,
+    target: tuple,
+    rmse: float | None = None,
+    n_paths: Sequence[int] | None = None,
+    dt: float | None = None,
+    steps: AbstractSteps | None = None,
+    t0: float = 0.0,
+    solver="euler",
+    save: Save | None = None,
+    weak_order: float | None = None,
+    antithetic: bool = False,
+    piece_paths: int = 4096,
+    max_levels: int = 12,
+    batching: Batching | None = None,
+) -> MultilevelEstimate:
+    """Multilevel Monte Carlo estimate of the saved means and covariances (module docstring).
+
+    Arguments as :func:`~nhsde.simulate`, and:
+
+    - ``target``: the statistic whose RMSE is controlled, at ``t1``: ``('mean', name)``
+      or ``('cov', name_a, name_b)``; its names must be saved.
+    - ``rmse``: the requested root-mean-square error of ``target`` (levels and
+      samples chosen adaptively), or ``n_paths``: a fixed ``(N_0, …, N_L)``, e.g.
+      ``result.n_paths_per_level`` (no adaptation; differentiable in the parameters).
+    - ``dt`` (or ``steps=FixedSteps(dt)``): the coarsest step ``h₀``.
+    - ``weak_order``: ``α`` of the bias estimate (default 2 for
+      :class:`~nhsde.PlatenWeak2`, else 1, which overestimates the bias of a
+      second-order scheme and is safe).
+    - ``antithetic``: pair every path with its reflection ``W → −W``.
+    - ``piece_paths``: paths per run on level 0 (halved per level, at least 64).
+    - ``max_levels``: the most levels to add before giving up.
+    """
+    if not isinstance(system, StochasticSystem):
+        raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
+    if (rmse is None) == (n_paths is None):
+        raise TypeError("multilevel_monte_carlo needs exactly one of rmse=… (adaptive) or n_paths=(N_0, …, N_L).")
+    if steps is not None:
+        if dt is not None:
+            raise TypeError(f"dt={dt} and steps={steps!r}: give the coarsest step once.")
+        if not isinstance(steps, FixedSteps):
+            raise ValueError(
+                f"steps={steps!r}: multilevel Monte Carlo couples levels on fixed step grids h₀ 2^−ℓ; "
+                "use dt=h₀ or steps=FixedSteps(h₀)."
+            )
+        if steps.brownian_dt is not None:
+            raise ValueError(f"steps={steps!r}: each level sets its own brownian_dt; leave it None.")
+        dt = steps.dt
+    if dt is None:
+        raise TypeError("multilevel_monte_carlo needs the coarsest step: dt=h₀ or steps=FixedSteps(h₀).")
+    h0 = check_number("dt", dt, positive=True)
+    t0, t1 = check_number("t0", t0), check_number("t1", t1)
+    steps0 = check_steps("dt", t1 - t0, h0)
+    solver_needs(coupling_solver(solver), system)
+    if not isinstance(antithetic, bool):
+        raise TypeError(f"antithetic={antithetic!r}; expected True or False.")
+    if antithetic and not system.noise.continuous:
+        raise ValueError(
+            f"antithetic=True: the driver {type(system.noise).__name__} has jumps, whose law is not symmetric under "
+            "W → −W; antithetic paths need a Wiener driver."
+        )
+    if weak_order is None:
+        alpha = 2 if isinstance(solver, PlatenWeak2) else 1
+    else:
+        alpha = check_number("weak_order", weak_order, positive=True)
+    piece_paths = check_number("piece_paths", piece_paths, integer=True)
+    if piece_paths < BLOCK or piece_paths % BLOCK:
+        raise ValueError(f"piece_paths={piece_paths}; must be a positive multiple of {BLOCK}.")
+    max_levels = check_number("max_levels", max_levels, integer=True)
+    target_names = tuple(dict.fromkeys(target[1:])) if isinstance(target, tuple) else ()
+    save = paths_save(save, steps0, target_names or system.layout.names)
+    assert save.names is not None
+    kind, i, j = _target_index(target, save.names)
+    key = check_key(key)
+    levels = _Levels(
+        system,
+        y0,
+        key,
+        t0=t0,
+        t1=t1,
+        h0=h0,
+        solver=solver,
+        save=save,
+        antithetic=antithetic,
+        piece_paths=piece_paths,
+        batching=batching,
+    )
+
+    if n_paths is not None:
+        counts = [check_number("n_paths", n, integer=True) for n in n_paths]
+        if not counts or min(counts) < 1:
+            raise ValueError(f"n_paths={n_paths!r}; expected one count ≥ 1 per level, (N_0, …, N_L).")
+        for level, n in enumerate(counts):
+            levels.grow(level, n)
+        moments = [levels.moments(level) for level in range(len(counts))]
+    else:
+        eps = check_number("rmse", rmse, positive=True)
+        if not is_concrete(system, y0):
+            raise TypeError(
+                "rmse=…: choosing the levels needs concrete parameters; under jax transformations pass "
+                "n_paths=result.n_paths_per_level of an earlier call instead."
+            )
+        moments = _adapt(levels, eps, alpha, max_levels, kind, i, j)
+        counts = [levels.count(level) for level in range(len(moments))]
+
+    mean, cov, mean_var, cov_var = (jnp.sum(jnp.stack(parts), axis=0) for parts in zip(*moments, strict=True))
+    level_means = jnp.stack([_pick(kind, i, j, m[0], m[1]) for m in moments])
+    level_vars = jnp.stack([_pick(kind, i, j, m[2], m[3]) * n for m, n in zip(moments, counts)])
+    value, var = _pick(kind, i, j, mean, cov), _pick(kind, i, j, mean_var, cov_var)
+    return MultilevelEstimate(
+        ts=jnp.linspace(t0, t1, mean.shape[0], dtype=mean.dtype),
+        mean=mean,
+        cov=cov,
+        mean_se=safe_sqrt(mean_var),
+        cov_se=safe_sqrt(cov_var),
+        n_paths=jnp.asarray(sum(counts)),
+        names=save.names,
+        roles=roles_of(system, save.names),
+        value=value,
+        standard_error=safe_sqrt(var),
+        level_means=level_means,
+        level_variances=level_vars,
+        bias=_bias(level_means, alpha),
+        n_paths_per_level=tuple(counts),
+        level_costs=tuple(levels.cost(level) for level in range(len(counts))),
+        target=target,
+        dt=h0,
+    )
+
+
+def _bias(level_means, alpha):
+    """Giles (2015) Algorithm 1: ``max(|Ŷ_L|, |Ŷ_{L−1}|/2^α)/(2^α − 1)``."""
+    if level_means.shape[0] < 2:
+        return jnp.asarray(jnp.nan, level_means.dtype)
+    return jnp.maximum(jnp.abs(level_means[-1]), jnp.abs(level_means[-2]) / 2**alpha) / (2**alpha - 1)
+
+
+def _adapt(levels: _Levels, eps: float, alpha: float, max_levels: int, kind, i, j):
+    """Giles (2015) Algorithm 1 with samples in whole pieces; returns the moments of each level."""
+    n_levels = 3
+    wanted = [levels.piece(level) for level in range(n_levels)]
+    while True:
+        for level, n in enumerate(wanted):
+            levels.grow(level, n)
+        moments = [levels.moments(level) for level in range(n_levels)]
+        counts = [levels.count(level) for level in range(n_levels)]
+        variances = [max(float(_pick(kind, i, j, m[2], m[3])) * n, 1e-300) for m, n in zip(moments, counts)]
+        costs = [levels.cost(level) for level in range(n_levels)]
+        optimal = _allocate(variances, costs, eps)
+        wanted = [
+            max(n, levels.piece(level) * math.ceil(o / levels.piece(level)))
+            for level, (n, o) in enumerate(zip(counts, optimal))
+        ]
+        if wanted != counts:
+            continue
+        means = jnp.stack([_pick(kind, i, j, m[0], m[1]) for m in moments])
+        if float(_bias(means, alpha)) <= eps / math.sqrt(2):
+            return moments
+        if n_levels >= max_levels:
+            raise ValueError(
+                f"max_levels={max_levels}: the bias estimate {float(_bias(means, alpha)):.3g} is still above "
+                f"rmse/√2 = {eps / math.sqrt(2):.3g}; raise max_levels or rmse, or check weak_order={alpha}."
+            )
+        n_levels += 1
+        wanted.append(levels.piece(n_levels - 1))

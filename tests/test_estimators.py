@@ -1,0 +1,143 @@
+"""Estimators of drift statistics at a requested accuracy: extrapolation, multilevel Monte Carlo, antithetic paths.
+
+Tolerances come from the Monte-Carlo standard errors (and stated confidence levels);
+the exact values are the ball's closed forms, S0 (3.1).
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.stats
+
+import nhsde
+from nhsde.noise import CompoundPoisson, NormalJumps
+from nhsde.scenes import BallOnVibratingPlane, ball_covariances
+from nhsde.statistics import antithetic, extrapolate, multilevel_monte_carlo
+
+DELTA = 1 / 1.4
+BALL = BallOnVibratingPlane(eps=1.0, nu=1.0)
+Y0 = jnp.zeros(4)
+
+
+def k_xx(t, eps=1.0, nu=1.0):
+    return np.asarray(ball_covariances(jnp.asarray(t, jnp.float64), eps, nu, DELTA)[0])
+
+
+def test_extrapolation_removes_the_euler_bias_of_k_xx():
+    """Euler at h = 1/8 is off by > 5 SE; 2 S(h/2) − S(h) on one Brownian path is within 3 SE at every time."""
+    save = nhsde.Save(names=("x",), n=5)
+    args = dict(n_paths=2**17, t1=2.0, dt=0.125, save=save)
+    est = extrapolate(BALL.build(), Y0, jax.random.key(0), **args)
+    plain = nhsde.simulate(BALL.build(), Y0, jax.random.key(0), **args)
+    exact = k_xx(np.linspace(0.0, 2.0, 5))[1:]
+    z_plain = (np.asarray(plain.cov[1:, 0, 0]) - exact) / np.asarray(plain.cov_se[1:, 0, 0])
+    z_ex = (np.asarray(est.cov[1:, 0, 0]) - exact) / np.asarray(est.cov_se[1:, 0, 0])
+    assert abs(z_plain[-1]) > 5, z_plain
+    assert np.all(np.abs(z_ex) <= 3), z_ex
+
+
+def test_antithetic_paths_make_the_ball_means_exact():
+    """From rest x(−W) = −x(W): the antithetic mean is exactly 0, the covariance that of the plain paths."""
+    save = nhsde.Save(names=("x", "u_x"), n=2)
+    args = dict(n_paths=512, t1=1.0, dt=0.25, save=save)
+    anti = extrapolate(BALL.build(), Y0, jax.random.key(1), antithetic=True, **args)
+    plain = extrapolate(BALL.build(), Y0, jax.random.key(1), **args)
+    np.testing.assert_allclose(np.asarray(anti.mean), 0.0, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(anti.cov), np.asarray(plain.cov), rtol=1e-12)
+    reflected = antithetic(BALL.build())
+    assert antithetic(reflected).noise == BALL.build().noise
+
+
+@pytest.mark.parametrize("solver", ["euler", "milstein", "heun", "sra1", "exponential"])
+def test_one_level_is_plain_monte_carlo_on_the_same_paths(solver):
+    """Level 0 alone is simulate's ensemble of key fold_in(fold_in(key, 0), 0): same covariance and SE."""
+    system, key = BALL.build(), jax.random.key(4)
+    save = nhsde.Save(names=("x",), n=2)
+    est = multilevel_monte_carlo(
+        system, Y0, key, t1=1.0, dt=0.25, n_paths=(1024,), target=("cov", "x", "x"), solver=solver, save=save
+    )
+    sub = jax.random.fold_in(jax.random.fold_in(key, 0), 0)
+    ens = nhsde.simulate(system, Y0, sub, n_paths=1024, t1=1.0, dt=0.25, solver=solver, save=save)
+    np.testing.assert_allclose(float(est.value), float(ens.cov[-1, 0, 0]), rtol=1e-10)
+    np.testing.assert_allclose(float(est.standard_error), float(ens.cov_se[-1, 0, 0]), rtol=1e-6)
+
+
+def realised_rmse_within_target(targets, repetitions, confidence=0.99):
+    """Realised RMSE of K_xx(1) over independent runs ≤ ε √(χ²_{R, confidence}/R) (errors of MSE ≤ ε²)."""
+    exact = float(k_xx(1.0))
+    bound = np.sqrt(scipy.stats.chi2.ppf(confidence, repetitions) / repetitions)
+    for relative in targets:
+        eps = relative * exact
+        errors = [
+            float(
+                multilevel_monte_carlo(
+                    BALL.build(), Y0, jax.random.key(100 + r), t1=1.0, dt=0.25, rmse=eps, target=("cov", "x", "x")
+                ).value
+            )
+            - exact
+            for r in range(repetitions)
+        ]
+        realised = np.sqrt(np.mean(np.square(errors)))
+        assert realised <= bound * eps, (relative, realised / eps, bound)
+
+
+def test_multilevel_reaches_the_requested_rmse():
+    realised_rmse_within_target([0.2, 0.06, 0.02], repetitions=20)
+
+
+@pytest.mark.slow
+def test_multilevel_reaches_the_requested_rmse_at_tight_targets():
+    realised_rmse_within_target([0.01, 0.003, 0.001], repetitions=40)
+
+
+def test_gradients_through_multilevel_agree_with_the_closed_form():
+    """jacfwd through a fixed allocation: ∂K_xx(1)/∂(ε, ν) over 8 independent runs within t_{0.999} standard errors.
+
+    Two levels (h = 1/8, 1/16) of the weak-order-2 solver: its bias there is far below the standard error.
+    """
+    args = dict(t1=1.0, dt=0.125, target=("cov", "x", "x"), solver=nhsde.PlatenWeak2(increments="gaussian"))
+
+    def estimate(p, key):
+        system = BALL.build().replace_params(eps=p[0], nu=p[1])
+        return multilevel_monte_carlo(system, Y0, key, n_paths=(8192, 2048), **args).value
+
+    runs = 8
+    grads = np.array([jax.jacfwd(estimate)(jnp.array([1.0, 1.0]), jax.random.key(10 + k)) for k in range(runs)])
+    exact = np.array(jax.grad(lambda e, n: ball_covariances(jnp.float64(1.0), e, n, DELTA)[0], (0, 1))(1.0, 1.0))
+    se = grads.std(axis=0, ddof=1) / np.sqrt(runs)
+    assert np.all(np.abs(grads.mean(axis=0) - exact) <= scipy.stats.t.ppf(0.999, runs - 1) * se), (grads, exact, se)
+
+
+def test_bad_input_raises_naming_the_argument():
+    system = BALL.build()
+    base = dict(t1=1.0, dt=0.25, target=("cov", "x", "x"))
+    for rmse in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="rmse="):
+            multilevel_monte_carlo(system, Y0, jax.random.key(0), rmse=rmse, **base)
+    with pytest.raises(ValueError, match="target="):
+        multilevel_monte_carlo(
+            system,
+            Y0,
+            jax.random.key(0),
+            rmse=0.1,
+            t1=1.0,
+            dt=0.25,
+            target=("mean", "y"),
+            save=nhsde.Save(names=("x",)),
+        )
+    with pytest.raises(ValueError, match="steps="):
+        multilevel_monte_carlo(
+            system, Y0, jax.random.key(0), rmse=0.1, t1=1.0, steps=nhsde.AdaptiveSteps(0.25), target=("mean", "x")
+        )
+    with pytest.raises(TypeError, match="rmse"):
+        multilevel_monte_carlo(system, Y0, jax.random.key(0), rmse=0.1, n_paths=(64,), **base)
+    jumps = dataclasses.replace(system, noise=CompoundPoisson(law=NormalJumps(), intensity=1.0))
+    with pytest.raises(ValueError, match="solver='sra1'"):
+        multilevel_monte_carlo(jumps, Y0, jax.random.key(0), rmse=0.1, solver="sra1", **base)
+    with pytest.raises(ValueError, match="antithetic"):
+        multilevel_monte_carlo(jumps, Y0, jax.random.key(0), rmse=0.1, antithetic=True, **base)
+    with pytest.raises(ValueError, match="solver="):
+        extrapolate(system, Y0, jax.random.key(0), n_paths=64, t1=1.0, dt=0.25, solver="weak2")
