@@ -36,14 +36,24 @@ def _tuple_of_names(names):
 class Save(eqx.Module):
     """What ``simulate`` keeps: which components, at how many times, per path or not.
 
-    - ``names``: state components or system observables (a tuple of names);
-      ``None`` = the whole state.
-    - ``n``: number of equally spaced save times from ``t0`` to ``t1`` inclusive;
-      ``n − 1`` must divide the number of steps (``None``: the largest such ``n ≤ 11``).
-    - ``paths``: also keep the per-path values, ``(n_paths, n, k)``.
-    - ``about``: the point ``(n, k)`` the moment sums are taken about (default:
-      the first path's values); pass an earlier piece's ``Ensemble.sums.shift``
-      so that the sums of several pieces add exactly.
+    Arguments:
+        names: state components or system observables (a tuple of names);
+            ``None`` = the whole state.
+        n: number of equally spaced save times from ``t0`` to ``t1`` inclusive;
+            ``n − 1`` must divide the number of steps (``None``: the largest such ``n ≤ 11``).
+        paths: also keep the per-path values, ``(n_paths, n, k)``.
+        about: the point ``(n, k)`` the moment sums are taken about (default:
+            the first path's values); pass an earlier piece's ``Ensemble.sums.shift``
+            so that the sums of several pieces add exactly.
+
+    Examples:
+        >>> import nhsde
+        >>> nhsde.Save(names=("x", "omega_x"), n=3)
+        Save(names=('x', 'omega_x'), n=3)
+        >>> nhsde.Save(n=1)
+        Traceback (most recent call last):
+        ...
+        ValueError: Save(n=1); must be ≥ 2 (the start and the end at least).
     """
 
     names: tuple[str, ...] | None = eqx.field(default=None, converter=_tuple_of_names)

@@ -29,10 +29,21 @@ class AbstractSteps(eqx.Module):
 class FixedSteps(AbstractSteps):
     """Steps of ``dt`` on the counter-based Brownian path (``dt`` must divide ``t1 − t0``).
 
-    - ``brownian_dt``: base step of the Brownian path (divides ``dt``); solves with
-      different ``dt`` and the same ``brownian_dt`` and key share one path.
-    - ``max_steps``: the step budget per path; a longer run is refused naming the
-      count (raise it to run longer).
+    Arguments:
+        dt: the step, ``> 0``.
+        brownian_dt: base step of the Brownian path (divides ``dt``); solves with
+            different ``dt`` and the same ``brownian_dt`` and key share one path (strong errors).
+        max_steps: the step budget per path; a longer run is refused naming the
+            count (raise it to run longer).
+
+    Examples:
+        >>> import nhsde
+        >>> nhsde.FixedSteps(0.01, brownian_dt=0.001)
+        FixedSteps(dt=0.01, brownian_dt=0.001)
+        >>> nhsde.FixedSteps(-0.1)
+        Traceback (most recent call last):
+        ...
+        ValueError: dt=-0.1; must be > 0.
     """
 
     dt: float
@@ -50,10 +61,18 @@ class FixedSteps(AbstractSteps):
 class AdaptiveSteps(AbstractSteps):
     """Adaptive steps: ``diffeqsolve`` with a PID controller on a ``VirtualBrownianTree`` per path.
 
-    ``dt`` is the first step; ``rtol``/``atol`` the controller's tolerances; at
-    most ``max_steps`` steps per path (a path that needs more counts as failed).
     The error estimate is the solver's own where a stochastic Runge–Kutta
-    tableau embeds one, else step doubling (``diffrax.HalfSolver``).
+    tableau embeds one, else step doubling (``diffrax.HalfSolver``).  Wiener-driven systems only.
+
+    Arguments:
+        dt: the first step.
+        rtol, atol: the controller's relative and absolute tolerances.
+        max_steps: at most this many steps per path (a path that needs more counts as failed).
+
+    Examples:
+        >>> import nhsde
+        >>> nhsde.AdaptiveSteps(dt=0.01, rtol=1e-4, atol=1e-4)
+        AdaptiveSteps(dt=0.01, rtol=0.0001, atol=0.0001)
     """
 
     dt: float
@@ -75,16 +94,28 @@ def _devices(devices):
 class Batching(eqx.Module):
     """How the paths are grouped, spread and differentiated.
 
-    - ``chunk_size``: paths per chunk (a multiple of 64; default: all paths up to
-      8192); memory scales with it, not with ``n_paths``.
-    - ``devices``: the devices to shard chunks over (default: all of
-      ``jax.devices()``); one chunk per device at a time, statistics bitwise the
-      same as on one device.
-    - ``checkpoint``: in reverse mode, ``True`` recomputes each save interval
-      instead of storing every step (memory ∝ steps per save interval, about one
-      extra forward pass); ``False`` stores every step (faster, memory ∝ steps ×
-      chunk); ``None`` stores while the estimated residuals (≈ 10 × steps per
-      interval × chunk × state size × bytes) stay under 1 GiB.
+    Statistics are bitwise the same for every choice: only memory and speed change.
+
+    Arguments:
+        chunk_size: paths per chunk (a multiple of 64; default: all paths up to
+            8192); memory scales with it, not with ``n_paths``.
+        devices: the devices to shard chunks over (default: all of
+            ``jax.devices()``); one chunk per device at a time, statistics bitwise the
+            same as on one device.
+        checkpoint: in reverse mode, ``True`` recomputes each save interval
+            instead of storing every step (memory ∝ steps per save interval, about one
+            extra forward pass); ``False`` stores every step (faster, memory ∝ steps ×
+            chunk); ``None`` stores while the estimated residuals (≈ 10 × steps per
+            interval × chunk × state size × bytes) stay under 1 GiB.
+
+    Examples:
+        >>> import nhsde
+        >>> nhsde.Batching(chunk_size=256, checkpoint=True)
+        Batching(chunk_size=256, checkpoint=True)
+        >>> nhsde.Batching(chunk_size=100)
+        Traceback (most recent call last):
+        ...
+        ValueError: chunk_size=100; must be a positive multiple of 64.
     """
 
     chunk_size: int | None = None

@@ -44,6 +44,33 @@ def parameter(*, default, lower: float | None = None, strict: bool = False, doc:
     A parameter with a scalar default must be a scalar, unless ``per_channel``
     (one value per noise channel is allowed): a vector given for a scalar is
     refused rather than broadcast.
+
+    Arguments:
+        default: the value when none is given.
+        lower: the smallest allowed value (``None``: any finite real).
+        strict: exclude ``lower`` itself.
+        doc: one line with the symbol and its unit, shown by :meth:`AbstractParameters.describe`.
+        per_channel: allow one value per noise channel.
+
+    Returns:
+        an ``equinox`` field declaration for a subclass of :class:`AbstractParameters`.
+
+    Examples:
+        >>> import jax
+        >>> import jax.numpy as jnp
+        >>> import nhsde
+        >>> class Friction(nhsde.AbstractParameters):
+        ...     eps: jnp.ndarray = nhsde.parameter(default=1.0, lower=0.0, doc="friction ε, 1/s")
+        >>> Friction(eps=0.5).eps
+        Array(0.5, dtype=float64, weak_type=True)
+        >>> Friction.describe()
+        [('eps', 1.0, 'finite and ≥ 0', 'friction ε, 1/s')]
+        >>> Friction(eps=-1.0)
+        Traceback (most recent call last):
+        ...
+        ValueError: Friction: parameter eps=-1.0 is not allowed; eps must be finite and ≥ 0.
+        >>> float(jax.grad(lambda p: p.eps**2)(Friction(eps=3.0)).eps)  # a leaf: gradients reach it
+        6.0
     """
     return eqx.field(
         default=default,
@@ -170,6 +197,12 @@ def sqrt_intensity(nu):
     there, which a pathwise gradient cannot see.  Instead of a silent NaN, a
     derivative with respect to ``ν`` taken at ``ν = 0`` raises; take it at
     ``ν > 0`` (covariances are linear in ``ν``) or differentiate in ``√ν``.
+
+    Examples:
+        >>> import jax
+        >>> import nhsde
+        >>> float(nhsde.sqrt_intensity(4.0)), float(jax.grad(nhsde.sqrt_intensity)(4.0))
+        (2.0, 0.25)
     """
     return jnp.sqrt(nu)
 

@@ -31,7 +31,19 @@ ROLES = (
 
 
 class StateLayout(eqx.Module):
-    """Names and roles of the state components, in order."""
+    """Names and roles of the state components, in order.
+
+    Arguments:
+        names: one distinct name per state component.
+        roles: one of :data:`ROLES` per component (``"dependent_coordinate"`` marks the ``q''`` whose statistics
+            are the drift).
+
+    Examples:
+        >>> import nhsde
+        >>> layout = nhsde.StateLayout(("x", "u"), ("dependent_coordinate", "velocity"))
+        >>> layout.size, layout.index("u"), layout.indices("dependent_coordinate")
+        (2, 1, (0,))
+    """
 
     names: tuple[str, ...]
     roles: tuple[str, ...]
@@ -95,6 +107,47 @@ class StochasticSystem(eqx.Module):
       drift ``a = A Z + N(Z)`` (viscous friction), for the exponential solver.
     - ``additive_noise`` declares that ``b`` does not depend on ``y``, which
       admits additive-noise solvers and makes Itô and Stratonovich coincide.
+
+    Arguments:
+        drift_fn: ``a(t, y, params) -> (d,)``, a pure function (static: give a module-level function, not one
+            that closes over parameters).
+        diffusion_fn: ``b(t, y, params) -> (d, noise_dim)``.
+        params: a pytree of the physical parameters (usually an :class:`~nhsde.AbstractParameters`).
+        layout: the :class:`StateLayout` of the ``d`` state components.
+        noise_dim: the dimension ``m`` of ``W``.
+        interpretation: ``"ito"`` or ``"stratonovich"``: the calculus ``drift_fn`` is written in.
+        additive_noise: ``b`` does not depend on ``y``.
+        observables: ``(name, f(t, y, params) -> ())`` pairs.
+        noise: the driving process (default :class:`~nhsde.noise.Wiener`).
+        linear_drift: ``params -> A`` of the linear part of the drift, or ``None``.
+
+    Examples:
+        The Ornstein–Uhlenbeck velocity ``du = −θ u dt + √ν dW``:
+
+        >>> import jax.numpy as jnp
+        >>> import nhsde
+        >>> class OUParameters(nhsde.AbstractParameters):
+        ...     theta: jnp.ndarray = nhsde.parameter(default=1.0, lower=0.0, doc="relaxation rate θ")
+        ...     nu: jnp.ndarray = nhsde.parameter(default=1.0, lower=0.0, doc="noise intensity ν")
+        >>> def drift(t, y, p):
+        ...     return -p.theta * y
+        >>> def diffusion(t, y, p):
+        ...     return nhsde.sqrt_intensity(p.nu) * jnp.ones((1, 1), y.dtype)
+        >>> system = nhsde.StochasticSystem(
+        ...     drift_fn=drift,
+        ...     diffusion_fn=diffusion,
+        ...     params=OUParameters(theta=2.0),
+        ...     layout=nhsde.StateLayout(("u",), ("velocity",)),
+        ...     noise_dim=1,
+        ...     additive_noise=True,
+        ... )
+        >>> system.state_dim, system.observable_names()
+        (1, ('u',))
+        >>> print(system.drift(0.0, jnp.array([0.5]), system.params))
+        [-1.]
+        >>> faster = system.replace_params(theta=4.0)
+        >>> print(faster.drift(0.0, jnp.array([0.5]), faster.params))
+        [-2.]
     """
 
     drift_fn: VectorField = eqx.field(static=True)

@@ -70,6 +70,23 @@ def work_precision(
     moment-method) value.  The strong error uses ``strong_paths`` paths against
     a reference solve at ``reference_dt`` (default ``min(dts)/16``) with SRA1
     for additive noise and Milstein otherwise, on the same Brownian path.
+
+    Arguments:
+        system: the SDE (a scene's ``build()``).
+        y0: the initial state ``(d,)``.
+        key: a JAX random key (the same paths for every setting).
+        t1: the end time (from 0).
+        solvers: diffrax SDE solvers or aliases of ``nhsde.SOLVERS``.
+        dts: the steps to try.
+        statistic: ``statistic(ens) -> (value, standard_error)`` of an :class:`~nhsde.Ensemble`.
+        reference: the statistic's exact value.
+        n_paths: paths of the weak-error run.
+        save: what the weak-error run saves (:class:`~nhsde.Save`).
+        strong_paths: paths of the strong-error run.
+        reference_dt: the step of the reference solve (divides every ``dt``).
+
+    Returns:
+        one :class:`WorkPrecisionRow` per ``solver × dt``, for :func:`cheapest_setting`.
     """
     for solver in solvers:
         solver_needs(solver, system)  # names a solver that cannot solve this system
@@ -125,6 +142,29 @@ def cheapest_setting(rows: Sequence[WorkPrecisionRow], tolerance: float, *, kind
     ``kind='weak'``: the statistic's bias, counted as ``weak_error + 2·weak_se``
     (an error we cannot tell from Monte-Carlo noise is not claimed smaller);
     ``kind='strong'``: the pathwise RMS error.  Raises if no row qualifies.
+
+    Arguments:
+        rows: measurements from :func:`work_precision`.
+        tolerance: the error to reach, ``> 0``.
+        kind: ``'weak'`` or ``'strong'``.
+
+    Returns:
+        the qualifying :class:`WorkPrecisionRow` with the least ``seconds``.
+
+    Examples:
+        >>> import nhsde
+        >>> rows = [
+        ...     nhsde.WorkPrecisionRow("euler", 0.1, 0.20, 0.030, 0.002, 0.01, 10**6, 4096),
+        ...     nhsde.WorkPrecisionRow("euler", 0.01, 0.06, 0.004, 0.002, 0.08, 10**7, 4096),
+        ...     nhsde.WorkPrecisionRow("sra1", 0.1, 0.02, 0.003, 0.002, 0.03, 10**6, 4096),
+        ... ]
+        >>> best = nhsde.cheapest_setting(rows, tolerance=0.01)
+        >>> best.solver, best.dt
+        ('sra1', 0.1)
+        >>> nhsde.cheapest_setting(rows, tolerance=0.001)
+        Traceback (most recent call last):
+        ...
+        ValueError: no measured setting reaches weak error 0.001; the best is sra1 at dt=0.1 with 0.007 ...
     """
     if kind not in ("weak", "strong"):
         raise ValueError(f"kind={kind!r}; allowed: 'weak', 'strong'.")

@@ -82,9 +82,14 @@ def band(
 def drift_curves(stats, *, theory: Callable | None = None, axes=None, n_se: float = 2.0):
     """Systematic drift ``m_{q''}(t)`` and fluctuation drift ``K_{q''}(t)`` (diagonal) with error bands, S0 (6.7).
 
-    ``stats``: a :class:`nhsde.statistics.DriftStatistics`.  ``theory(ts) ->
-    (mean (T, k), cov (T, k, k))`` is drawn as lines at 200 times.  ``axes``: two
-    axes (systematic, fluctuation); returns them.
+    Arguments:
+        stats: a :class:`nhsde.statistics.DriftStatistics` with standard errors (from Monte Carlo).
+        theory: ``theory(ts) -> (mean (T, k), cov (T, k, k))``, drawn as lines at 200 times.
+        axes: two matplotlib axes (systematic, fluctuation); default a new figure.
+        n_se: the half-width of the bands in standard errors.
+
+    Returns:
+        the two axes.
     """
     axes = _axes(axes, 2)
     ts = np.asarray(stats.ts, np.float64)
@@ -132,6 +137,17 @@ def density(
     A bin with probability ``p`` holds ``n p ± √(n p (1 − p))`` samples, so the
     shaded band is ``n_se`` such errors about the theory; bin probabilities are
     ``pdf`` integrated over each bin (Simpson, 16 panels).
+
+    Arguments:
+        ax: matplotlib axes (``None``: a new figure).
+        samples: the values (any shape; non-finite ones dropped).
+        pdf: the density, vectorised over a 1-d array.
+        bins, range: as for ``numpy.histogram``.
+        n_se: the half-width of the band in standard errors.
+        label, theory_label: legend entries.
+
+    Returns:
+        the axes.
     """
     ax = _axes(ax)
     x = np.asarray(samples, np.float64).ravel()

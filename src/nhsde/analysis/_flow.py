@@ -84,6 +84,20 @@ def solve_flow(
     Negative ``t1`` integrates backwards in time.  All initial states run
     together under ``vmap``, compiled for compile speed (checks run once).
     ``log_volume=True`` also integrates ``∫ div v dt``.
+
+    Arguments:
+        vector_field: ``v(t, y, params)``.
+        y0: ``(n, d)`` initial states (float64).
+        params: the field's parameters.
+        t1: the end time (negative: backwards).
+        n_save: equally spaced save times from 0 to ``t1``.
+        rtol, atol: the step-size controller's tolerances.
+        solver: ``"dopri8"``, ``"tsit5"`` or ``"dopri5"``.
+        max_steps: step budget per state.
+        log_volume: also integrate ``∫ div v dt``.
+
+    Returns:
+        a :class:`Flow` with ``ts`` ``(n_save,)``, ``ys`` ``(n, n_save, d)`` and, if asked, ``log_volume``.
     """
     if solver not in SOLVERS:
         raise ValueError(f"solver={solver!r}; allowed: {', '.join(SOLVERS)}.")

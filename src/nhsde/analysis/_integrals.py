@@ -25,7 +25,28 @@ def _rates(vector_field, integrals, states, params, t):
 
 
 def integral_rates(vector_field: Callable, integrals: Mapping[str, Callable], states, params, t=0.0) -> dict:
-    """``dF/dt = (∇F, v)`` at each state for each ``F = integrals[name](y, params)``: zero for a first integral."""
+    """``dF/dt = (∇F, v)`` at each state for each ``F = integrals[name](y, params)``: zero for a first integral.
+
+    Arguments:
+        vector_field: the flow ``v(t, y, params)``.
+        integrals: ``name → F(y, params)``, the candidate first integrals.
+        states: ``(n, d)`` states.
+        params: the parameters passed to both.
+        t: the time at which ``v`` is evaluated.
+
+    Returns:
+        ``name → (n,)`` rates ``dF/dt``.
+
+    Examples:
+        >>> import jax.numpy as jnp
+        >>> from nhsde import analysis
+        >>> def rotation(t, y, p):
+        ...     return jnp.array([y[1], -y[0]])
+        >>> integrals = {"radius": lambda y, p: y @ y, "x": lambda y, p: y[0]}
+        >>> rates = analysis.integral_rates(rotation, integrals, jnp.array([[1.0, 2.0]]), None)
+        >>> print(rates["radius"], rates["x"])
+        [0.] [2.]
+    """
     states = state_batch(states)
     params = cast_floats(params, states.dtype)
     return _rates(vector_field, tuple(integrals.items()), states, params, jnp.asarray(t, states.dtype))

@@ -157,6 +157,28 @@ def stationary_spread(
     closed linear system at ``state`` with a Hurwitz ``A`` (S4 Theorem 4.1:
     asymptotic stability in those variables); cyclic coordinates (e.g. the
     heading) are neutral and must be left out.  Differentiable in the parameters.
+
+    Arguments:
+        system: the SDE (a scene's ``build()``).
+        state: the steady state ``(d,)`` of the noiseless system.
+        components: names of the components of the closed linear system (default: all but ``q''``).
+        t: the time at which the coefficients are evaluated.
+        rtol: relative tolerance of the checks (steadiness, closure).
+
+    Returns:
+        a :class:`Spread`: the Lyapunov solution ``cov`` of ``A K + K Aᵀ + Q = 0``, ``jacobian = A``,
+        ``noise = Q`` and ``std``.
+
+    Examples:
+        The ball at rest (S0 (3.1)): ``K = νδ²/(4ε)`` per axis, as the normal approximation finds it:
+
+        >>> import nhsde
+        >>> scene = nhsde.scenes.BallOnVibratingPlane(eps=1.0, nu=1.0)
+        >>> spread = nhsde.analysis.stationary_spread(scene.build(), scene.initial_state())
+        >>> spread.names
+        ('u_x', 'u_y')
+        >>> print(spread.cov.diagonal().round(4))
+        [0.1276 0.1276]
     """
     system = ito_system(system)
     state = system.state(state, "state")
@@ -208,6 +230,29 @@ def linear_residence_time(
     ``j ≠ i`` at ``state``) with ``κ = −∂a_i/∂Z_i > 0``: then ``δ_i`` is a scalar
     Ornstein–Uhlenbeck process and the mean exit time from 0 is the closed form in
     :class:`LinearResidence`.  Differentiable in the parameters (and ``radius``).
+
+    Arguments:
+        system: a Wiener-driven SDE.
+        state: the stable steady state ``(d,)``.
+        component: the monitored state component ``i``.
+        radius: the half-width ``r`` of the interval ``|Z_i − z₀_i| < r``.
+        t: the time at which the coefficients are evaluated.
+        rtol: relative tolerance of the checks.
+
+    Returns:
+        a :class:`LinearResidence`: ``mean`` exit time, ``rate`` ``κ``, ``noise`` ``σ²``, ``spread`` and
+        ``scaled_radius``.
+
+    Examples:
+        The ball's velocity (S0 (3.1)) is exactly an Ornstein–Uhlenbeck mode with ``κ = 2ε``, ``σ² = νδ²``:
+
+        >>> import nhsde
+        >>> scene = nhsde.scenes.BallOnVibratingPlane(eps=1.0, nu=1.0)
+        >>> stay = nhsde.analysis.linear_residence_time(
+        ...     scene.build(), scene.initial_state(), component="u_x", radius=0.5
+        ... )
+        >>> print(float(stay.rate), round(float(stay.noise), 4), round(float(stay.mean), 4))
+        2.0 0.5102 0.7025
     """
     system = ito_system(system)
     require_wiener(system, "linear_residence_time")

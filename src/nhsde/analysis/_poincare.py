@@ -52,7 +52,20 @@ def _frame(y):
 
 
 def andoyer(y):
-    """``(L, G, l, g)`` of the state ``(ω, γ)``, S2 (1.17); ``l, g ∈ (−π, π]``."""
+    """``(L, G, l, g)`` of the state ``(ω, γ)``, S2 (1.17); ``l, g ∈ (−π, π]``.
+
+    Arguments:
+        y: a state whose first six components are ``(ω, γ)``.
+
+    Returns:
+        ``(L, G, l, g)``: ``L = ω₃``, ``G = |ω|`` and the two Andoyer angles; :func:`from_andoyer` inverts it.
+
+    Examples:
+        >>> from nhsde import analysis
+        >>> y = analysis.from_andoyer(0.6, 1.0, 0.3, -1.2)
+        >>> print([round(float(v), 6) for v in analysis.andoyer(y)])
+        [0.6, 1.0, 0.3, -1.2]
+    """
     omega, gamma = y[:3], y[3:6]
     a, b = _frame(y)
     return omega[2], jnp.linalg.norm(omega), jnp.arctan2(omega[0], omega[1]), jnp.arctan2(gamma @ b, gamma @ a)
@@ -162,6 +175,24 @@ def poincare_section(
       crossing is located by bisection on the solver's dense output.
     - ``backward=True`` iterates the inverse map ``Φ⁻¹`` (integrates ``ẏ = −v``):
       its attractors are the repellers of ``Φ``.
+
+    Arguments:
+        vector_field: the rolling body's field ``v(t, y, params)`` on ``y = (ω, γ)`` (e.g. a scene's
+            ``vector_field``).
+        energy: ``energy(y, params)``, the first integral fixing the level ``E = h``.
+        params: the field's parameters.
+        points: ``(n, 2)`` initial points ``(l, L/G)`` on the section.
+        h: the energy level.
+        g0: the Andoyer angle ``g`` of the section.
+        n_crossings: crossings recorded per point.
+        dt: the fixed step.
+        max_time: the longest integration per point.
+        backward: iterate ``Φ⁻¹``.
+        solver: ``"dopri8"`` or ``"tsit5"``.
+
+    Returns:
+        a :class:`PoincareSection` of Andoyer coordinates ``l``, ``ratio = L/G`` and states at each crossing,
+        with ``valid`` flags.
     """
     if solver not in _SOLVERS:
         raise ValueError(f"solver={solver!r}; allowed: {', '.join(_SOLVERS)}.")

@@ -167,6 +167,21 @@ def residence_time(
     path values (the stay factor vanishes as a grid value reaches ``±r``), so
     ``jax.jacfwd`` through this function gives pathwise estimates of
     ``∂E[min(τ, t1)]/∂θ`` for the parameters ``θ`` of the system.
+
+    Arguments:
+        system: a Wiener-driven SDE.
+        state: the start ``z₀``, ``(d,)``.
+        key: a JAX random key.
+        component: the monitored state component ``i``.
+        radius: the half-width ``r``.
+        n_paths: the number of paths.
+        t1: the longest time followed (paths inside at ``t1`` are censored).
+        dt, steps: the step, as in :func:`~nhsde.simulate`.
+        save_every: monitor every this many steps.
+        solver, batching: as in :func:`~nhsde.simulate`.
+
+    Returns:
+        a :class:`Residence`: per-path exit times with ``mean``, ``mean_se``, the censored and failed paths.
     """
     system = ito_system(system)
     require_wiener(system, "residence_time")

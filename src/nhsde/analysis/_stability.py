@@ -104,6 +104,31 @@ def linear_stability(field: Callable, state, params, *, n_family: int, t=0.0, rt
     the others decide the verdict.  Raises ``ValueError`` if ``|f(state)|`` is not
     ≈ 0 (relative to ``|∂f/∂y|·|state|``) or the ``n_family`` smallest eigenvalues
     are not ≈ 0 (see :func:`classify`).
+
+    Arguments:
+        field: the vector field ``f(t, y, params)``.
+        state: the steady state ``(n,)``, float64.
+        params: the field's parameters.
+        n_family: the number of zero roots that belong to the family of steady states and first integrals.
+        t: the time at which ``f`` is evaluated.
+        rtol: relative tolerance of the steadiness check and of the verdict.
+
+    Returns:
+        a :class:`Stability`: sorted ``eigenvalues``, ``family_roots``, ``roots``, ``growth_rate``, ``verdict``
+        and ``residual = |f(state)|``.
+
+    Examples:
+        A damped pendulum ``θ̈ = −(g/l) sin θ − 0.1 θ̇`` at rest (no family: ``n_family=0``):
+
+        >>> import jax.numpy as jnp
+        >>> from nhsde import analysis
+        >>> def pendulum(t, y, g_over_l):
+        ...     return jnp.array([y[1], -g_over_l * jnp.sin(y[0]) - 0.1 * y[1]])
+        >>> result = analysis.linear_stability(pendulum, jnp.zeros(2), 4.0, n_family=0)
+        >>> result.verdict
+        'asymptotically stable'
+        >>> print(result.eigenvalues.round(3))
+        [-0.05+1.999j -0.05-1.999j]
     """
     state = jnp.asarray(state)
     require_float64("state", state)

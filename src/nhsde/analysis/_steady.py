@@ -123,6 +123,15 @@ def steady_motions(system: ChaplyginSystem, family: dict, guess: dict | None = N
     array of values; the other ``k`` are found from ``guess`` (default: the
     reference ``r``, ``ṡ = 1``).  ``ValueError`` names a parameter value at which
     (4.9) has no solution near the guess (outside the family's domain).
+
+    Arguments:
+        system: a :class:`ChaplyginSystem` (from :func:`chaplygin_system`).
+        family: ``name → value(s)`` for ``m`` of :attr:`ChaplyginSystem.unknowns`, e.g. ``{"x_dot": 1.5}``.
+        guess: ``name → value`` starting points of the other ``k`` unknowns.
+
+    Returns:
+        a :class:`SteadyMotions`: ``positions`` ``r``, ``velocities`` ``ṡ``, the ``residual`` of (4.9) and the
+        ``linearisation`` ``(W, V, U)`` that :func:`steady_stability` reads, one row per family value.
     """
     names, p = system.unknowns, system.spec.params
     fixed = _values(system, family, "family")

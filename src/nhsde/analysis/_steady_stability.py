@@ -57,7 +57,19 @@ class SteadyStability(eqx.Module):
 def steady_stability(
     system: ChaplyginSystem, motions: SteadyMotions, index: int = 0, *, drift: bool = True, rtol: float = 1e-8
 ) -> SteadyStability:
-    """Stability of ``motions[index]`` by the roots of S4 (4.19) and (``drift=True``) the reduced drift's Jacobian."""
+    """Stability of ``motions[index]`` by the roots of S4 (4.19) and (``drift=True``) the reduced drift's Jacobian.
+
+    Arguments:
+        system: the :class:`ChaplyginSystem` of ``motions``.
+        motions: steady motions from :func:`steady_motions`.
+        index: which of them.
+        drift: also classify the Jacobian of the reduced drift (an independent route, :func:`linear_stability`).
+        rtol: relative tolerance of the classification (:func:`classify`).
+
+    Returns:
+        a :class:`SteadyStability`: the Routh pencil ``A0``, ``G0``, ``D0``, ``C0``, ``E0`` of (4.19), its roots'
+        :class:`Stability` (``routh``), the reduced drift's (``drift``) and the ``verdict``.
+    """
     r, sdot = motions[index]
     w, v, u = (a[index] for a in motions.linearisation)
     linear = (w, v, u)

@@ -19,6 +19,12 @@ class RigidBody(AbstractParameters):
     ``inertia`` is a symmetric positive-definite ``(3, 3)`` matrix or the ``(3,)``
     principal moments; ``gyrostat`` is the constant angular momentum ``S`` of a
     balanced rotor spinning uniformly inside the body, S2 (1.7).
+
+    Arguments:
+        mass: ``m > 0``.
+        inertia: ``I`` about the centre of mass, ``(3, 3)`` or principal moments ``(3,)``.
+        surface: the body's surface (:class:`Sphere`, :class:`Ellipsoid`, …).
+        gyrostat: the rotor's angular momentum ``S``.
     """
 
     mass: jnp.ndarray = parameter(default=1.0, lower=0.0, strict=True, doc="mass m")

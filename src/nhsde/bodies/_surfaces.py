@@ -128,6 +128,24 @@ class Ellipsoid(AbstractSurface):
     """Triaxial ellipsoid ``(x, B⁻¹x) = 1`` about its centre, ``B = diag(a²)``, S2 §3.3.
 
     ``r = −Bγ/√(γ, Bγ) − c``, ``c`` = ``offset`` = (centre of mass) − (centre).
+
+    Arguments:
+        semi_axes: ``a₁, a₂, a₃ > 0``.
+        offset: ``c`` in the body axes.
+
+    Examples:
+        At the pole ``γ = e₃`` the contact point is ``−a₃ e₃`` and the radii of curvature are ``a₁²/a₃``,
+        ``a₂²/a₃``:
+
+        >>> import jax.numpy as jnp
+        >>> from nhsde import bodies
+        >>> surface = bodies.Ellipsoid(semi_axes=(1.0, 2.0, 3.0))
+        >>> up = jnp.array([0.0, 0.0, 1.0])
+        >>> print(surface.contact_point(up) + 0.0, surface.curvature_radii(up).round(4))
+        [ 0.  0. -3.] [0.3333 1.3333]
+        >>> body = bodies.RigidBody(mass=2.0, inertia=(1.0, 2.0, 3.0), surface=surface)
+        >>> body.inertia.shape
+        (3, 3)
     """
 
     semi_axes: jnp.ndarray = parameter(default=(1.0, 1.0, 1.0), lower=0.0, strict=True, doc="a₁, a₂, a₃")

@@ -84,6 +84,14 @@ class Simulated(AbstractStatisticsModel):
     :class:`~nhsde.FixedSteps` (or a number: its ``dt``); ``solver`` and
     ``batching`` as in :func:`~nhsde.simulate`.  Use a key other than the
     data's: the model's Monte-Carlo noise then enters the reported errors.
+
+    Arguments:
+        y0: the initial state ``(d,)``.
+        key: a JAX random key, not the data's.
+        n_paths: paths per evaluation.
+        steps: a :class:`~nhsde.FixedSteps` or its ``dt``.
+        solver, batching: as in :func:`~nhsde.simulate`.
+        t0: the start time.
     """
 
     y0: Array
@@ -126,6 +134,13 @@ class MomentEquations(AbstractStatisticsModel):
     default 0) with Dopri8 steps ``dt``; no Monte-Carlo noise, but for a
     nonlinear system the Gaussian closure's bias enters the estimates — the
     ``chi2`` of the fit shows whether it matters at the data's precision.
+
+    Arguments:
+        y0: the initial mean ``(d,)``.
+        cov0: the initial covariance (default 0).
+        dt: the Dopri8 step.
+        t0: the start time.
+        order: Gauss–Hermite nodes per component.
     """
 
     y0: Array
@@ -158,6 +173,9 @@ class ClosedForm(AbstractStatisticsModel):
     """Statistics from ``fn(params, ts) -> (mean (T, k), cov (T, k, k))``: closed forms, moment equations.
 
     ``fn`` must return the components in the order of the observed names.
+
+    Arguments:
+        fn: ``fn(params, ts) -> (mean (T, k), cov (T, k, k))``, differentiable in ``params``.
     """
 
     fn: Callable = eqx.field(static=True)
@@ -309,6 +327,37 @@ def estimate(
     - stops when the gradient of the loss (a χ²/2) in ``φ = log(θ − lower)``
       falls below ``gtol`` in norm — a Newton step of at most about
       ``gtol·se(φ)`` standard errors — or after ``max_steps`` steps.
+
+    Arguments:
+        system: the SDE whose parameters are fitted (a scene's ``build()``); its values are the default start.
+        observed: the data (:class:`Observations`).
+        model: how the statistics are computed (:class:`Simulated`, :class:`MomentEquations`, :class:`ClosedForm`).
+        vary: names of the parameters to fit.
+        init: start values (default: the system's current values).
+        optimizer: any optax transformation (default ``optax.lbfgs()``).
+        max_steps: the most optimizer steps.
+        gtol: the gradient norm at which the fit stops.
+
+    Returns:
+        a :class:`FitResult`: ``values``, their covariance ``cov`` and ``se``, ``chi2`` on ``dof`` degrees of
+        freedom, ``converged`` and the ``history``.
+
+    Examples:
+        ``ν`` from one measured variance ``k_xx(3) = 2.7 ± 0.11`` of the ball's position, S0 (3.1), through its
+        closed form (:func:`~nhsde.scenes.ball_covariances`):
+
+        >>> import nhsde
+        >>> from nhsde import fit
+        >>> def closed_form(p, ts):
+        ...     k_xx = nhsde.scenes.ball_covariances(ts, p.eps, p.nu, p.delta)[0]
+        ...     return 0.0 * ts[:, None], k_xx[:, None, None]
+        >>> observed = fit.Observations.from_statistics([3.0], ("x",), [[0.0]], [[[2.7]]], [[0.05]], [[[0.11]]], 1000)
+        >>> start = nhsde.scenes.BallOnVibratingPlane(eps=0.8, nu=0.4).build()
+        >>> result = fit.estimate(start, observed, fit.ClosedForm(closed_form), vary=("nu",))
+        >>> result.converged, result.dof
+        (True, 1)
+        >>> print(f"nu = {result.values[0]:.3f} ± {result.se[0]:.3f}")
+        nu = 6.536 ± 0.266
     """
     if not isinstance(system, StochasticSystem):
         raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")

@@ -89,7 +89,24 @@ class Observations(eqx.Module):
 
     @classmethod
     def from_paths(cls, ts, paths, names) -> Observations:
-        """Trajectories ``paths (n_paths, len(ts), len(names))`` observed at ``ts``."""
+        """Trajectories ``paths (n_paths, len(ts), len(names))`` observed at ``ts``.
+
+        Arguments:
+            ts: the observation times ``(T,)``.
+            paths: ``(n_paths, T, k)`` finite values, more paths than the statistics they give plus 2.
+            names: the ``k`` observed components (state names of the fitted system).
+
+        Returns:
+            the sample means and covariances with their full covariance ``Σ`` (cross-time correlations included).
+
+        Examples:
+            >>> import numpy as np
+            >>> from nhsde import fit
+            >>> paths = np.random.default_rng(0).normal(size=(200, 2, 1))
+            >>> observed = fit.Observations.from_paths([1.0, 2.0], paths, ("x",))
+            >>> observed.size, observed.covariance.shape, observed.n_paths
+            (4, (4, 4), 200)
+        """
         ts = np.asarray(ts, np.float64)
         names = tuple(str(n) for n in names)
         z = np.asarray(paths, np.float64)
@@ -117,7 +134,18 @@ class Observations(eqx.Module):
 
     @classmethod
     def from_statistics(cls, ts, names, mean, cov, mean_se, cov_se, n_paths: int) -> Observations:
-        """Measured ``mean (T, k)``, ``cov (T, k, k)`` with standard errors, from ``n_paths`` paths."""
+        """Measured ``mean (T, k)``, ``cov (T, k, k)`` with standard errors, from ``n_paths`` paths.
+
+        Arguments:
+            ts: the observation times ``(T,)``.
+            names: the ``k`` observed components.
+            mean, cov: ``(T, k)`` and ``(T, k, k)``.
+            mean_se, cov_se: their standard errors, same shapes.
+            n_paths: the number of paths they were measured on.
+
+        Returns:
+            observations with ``Σ = diag(se²)`` (correlations between the statistics unknown and ignored).
+        """
         ts = np.asarray(ts, np.float64)
         mean, cov, mean_se, cov_se = (np.asarray(a, np.float64) for a in (mean, cov, mean_se, cov_se))
         if mean_se.shape != mean.shape or cov_se.shape != cov.shape:

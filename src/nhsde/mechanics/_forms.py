@@ -408,9 +408,19 @@ def formulate(
     - ``dependent``: names of the dependent velocities ``q̇''`` (S0 (1.7)); with
       ``None`` they are chosen by pivoting at ``reference``.  Needed by the reduced
       routes; for the others they only set the coordinates' roles.
-    - ``reference``: a configuration at which :meth:`MechanicalSpec.check` and the
-      elimination are checked (``pi``, ``t`` complete it).
-    - ``stabilization``: Baumgarte rate κ ≥ 0 (1/s) of routes (c), (d).
+    Arguments:
+        spec: the :class:`MechanicalSpec`.
+        route: ``"reduced"`` (Voronets), ``"hamiltonian"``, ``"multipliers"`` (Lagrange) or ``"gauss"``.
+        dependent: names of the dependent velocities ``q̇''`` (S0 (1.7)); with
+            ``None`` they are chosen by pivoting at ``reference``.  Needed by the reduced
+            routes; for the others they only set the coordinates' roles.
+        reference: a configuration at which :meth:`MechanicalSpec.check` and the
+            elimination are checked.
+        pi, t: the random parameters and time that complete ``reference``.
+        stabilization: Baumgarte rate κ ≥ 0 (1/s) of routes (c), (d).
+
+    Returns:
+        the route's :class:`AbstractForm`: ``system()`` gives the Itô system, ``state(q, q̇)`` a state of it.
     """
     if not isinstance(spec, MechanicalSpec):
         raise TypeError(f"spec={type(spec).__name__}; expected a MechanicalSpec.")
@@ -438,7 +448,49 @@ def formulate(
 
 
 def build(spec: MechanicalSpec, route: str = "reduced", **options) -> StochasticSystem:
-    """``formulate(spec, route, **options).system()``: the Itô system of ``spec``."""
+    """``formulate(spec, route, **options).system()``: the Itô system of ``spec``, S0 (1.15).
+
+    Arguments:
+        spec: the :class:`MechanicalSpec`.
+        route: one of :data:`ROUTES`.
+        **options: ``dependent``, ``reference``, ``pi``, ``t``, ``stabilization`` of :func:`formulate`.
+
+    Returns:
+        the :class:`~nhsde.StochasticSystem` of the route.
+
+    Examples:
+        A knife edge (Chaplygin sleigh with the centre of mass on the blade): ``T = ½|q̇|²``,
+        Rayleigh ``R = ε|q̇|²``, random forces along ``x`` and ``y``, no sideways slip
+        ``−sin θ ẋ + cos θ ẏ = 0``:
+
+        >>> import jax.numpy as jnp
+        >>> import nhsde
+        >>> from nhsde import mechanics
+        >>> class KnifeParameters(nhsde.AbstractParameters):
+        ...     eps: jnp.ndarray = nhsde.parameter(default=0.5, lower=0.0, doc="friction ε")
+        ...     nu: jnp.ndarray = nhsde.parameter(default=1.0, lower=0.0, doc="noise intensity ν")
+        >>> def kinetic(q, v, pi, t, p):
+        ...     return 0.5 * (v @ v)
+        >>> def rayleigh(q, v, pi, t, p):
+        ...     return p.eps * (v @ v)
+        >>> def noise(q, v, pi, t, p):
+        ...     return nhsde.sqrt_intensity(p.nu) * jnp.eye(3, 2, dtype=v.dtype)
+        >>> def knife(q, pi, t, p):
+        ...     return jnp.stack([jnp.array([-jnp.sin(q[2]), jnp.cos(q[2]), 0.0])])
+        >>> spec = mechanics.MechanicalSpec(
+        ...     coordinates=("x", "y", "theta"),
+        ...     params=KnifeParameters(),
+        ...     kinetic_energy=kinetic,
+        ...     dissipation=rayleigh,
+        ...     noise_force=noise,
+        ...     constraints=knife,
+        ... )
+        >>> system = mechanics.build(spec, "reduced", dependent=("y",), reference=jnp.zeros(3))
+        >>> system.layout.names
+        ('x', 'y', 'theta', 'x_dot', 'theta_dot')
+        >>> system.layout.roles[1]
+        'dependent_coordinate'
+    """
     return formulate(spec, route, **options).system()
 
 

@@ -55,6 +55,17 @@ class OrnsteinUhlenbeck(AbstractShapingFilter, AbstractParameters):
     Correlation ``(γν/2) e^{−γ|τ|}`` (stationary variance ``γν/2``), spectral
     density at zero ``ν``: as ``γ → ∞`` it tends to white noise of intensity ``ν``.
     S0 §5's filter ``π̇ + 2επ = V`` is ``rate = 2ε``, ``intensity = 1/(2ε)²``.
+
+    Arguments:
+        names: one state name per output channel, e.g. ``("pi_x", "pi_y")``.
+        rate: ``γ = 1/correlation time``, ``> 0`` (scalar or per channel).
+        intensity: ``ν``, the low-frequency intensity (scalar or per channel).
+
+    Examples:
+        >>> import nhsde
+        >>> pi = nhsde.noise.OrnsteinUhlenbeck(names=("pi_x", "pi_y"), rate=4.0, intensity=0.5)
+        >>> print(pi.stationary_variance())  # γν/2
+        [1. 1.]
     """
 
     names: tuple[str, ...] = eqx.field(static=True)
@@ -90,6 +101,14 @@ class ShapingFilter(AbstractShapingFilter):
 
     ``drift_fn``/``diffusion_fn`` are pure functions with diffrax's signature;
     ``params`` is a pytree of leaves (e.g. an :class:`~nhsde.AbstractParameters`).
+
+    Arguments:
+        drift_fn: ``φ(t, π, params) -> (k,)``.
+        diffusion_fn: ``ψ(t, π, params) -> (k, noise_dim)``.
+        params: the filter's parameters.
+        names: one state name per output ``π``.
+        noise_dim: the dimension of the driving noise.
+        additive_noise: ``ψ`` does not depend on ``π`` (keyword only).
     """
 
     drift_fn: Callable = eqx.field(static=True)
@@ -171,6 +190,27 @@ def with_shaping_filter(system, filter: AbstractShapingFilter):
 
     The filter needs one output per noise channel of ``system``; the new system's
     noise (``system.noise``, Wiener or with jumps) drives the filter.
+
+    Arguments:
+        system: the white-noise system ``dZ = a dt + b dW``.
+        filter: a shaping filter (:class:`OrnsteinUhlenbeck`, :class:`ShapingFilter`) with one output per
+            noise channel of ``system``.
+
+    Returns:
+        the :class:`~nhsde.StochasticSystem` ``dπ = φ dt + ψ dW``, ``Ż = a_S + b π`` with state ``[π, Z]``
+        (S0 (1.15)) and parameters :class:`FilteredParameters` ``(system, filter)``.
+
+    Examples:
+        The ball of S0 (3.1) shaken by coloured noise of correlation time ``0.1``:
+
+        >>> import nhsde
+        >>> ball = nhsde.scenes.BallOnVibratingPlane(drift=False).build()
+        >>> pi = nhsde.noise.OrnsteinUhlenbeck(names=("pi_x", "pi_y"), rate=10.0)
+        >>> coloured = nhsde.noise.with_shaping_filter(ball, pi)
+        >>> coloured.layout.names
+        ('pi_x', 'pi_y', 'u_x', 'u_y')
+        >>> coloured.layout.roles
+        ('random_parameter', 'random_parameter', 'velocity', 'velocity')
     """
     if not isinstance(system, StochasticSystem):
         raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem.")

@@ -91,7 +91,17 @@ class AbstractJumpLaw(AbstractParameters):
 
 
 class NormalJumps(AbstractJumpLaw):
-    """Jumps ``c ~ N(mean, std²)``; the sum of ``N`` of them is ``N·mean + √N·std·Z`` exactly."""
+    """Jumps ``c ~ N(mean, std²)``; the sum of ``N`` of them is ``N·mean + √N·std·Z`` exactly.
+
+    Arguments:
+        mean: the mean jump size (scalar or per channel).
+        std: the standard deviation of the jump size.
+
+    Examples:
+        >>> from nhsde import noise
+        >>> [float(noise.NormalJumps(mean=1.0, std=2.0).moment(k)) for k in (1, 2, 4)]
+        [1.0, 5.0, 73.0]
+    """
 
     mean: Array = parameter(default=0.0, per_channel=True, doc="mean jump size")
     std: Array = parameter(default=1.0, lower=0.0, per_channel=True, doc="standard deviation of the jump size")
@@ -113,6 +123,10 @@ class ParetoJumps(AbstractJumpLaw):
     """Symmetric heavy-tailed jumps ``c = ±scale·U^{−1/tail}``: ``P(|c| > x) = (scale/x)^tail``, ``x ≥ scale``.
 
     ``E|c|^k = scale^k tail/(tail − k)`` for ``k < tail``; finite variance needs ``tail > 2``.
+
+    Arguments:
+        scale: the smallest jump size.
+        tail: the tail index, ``> 2``.
     """
 
     scale: Array = parameter(default=1.0, lower=0.0, per_channel=True, doc="smallest jump size")
@@ -154,6 +168,22 @@ class CompoundPoisson(AbstractDriver, AbstractParameters):
 
     S0's Poisson stochastic systems.  ``intensity`` (``λ``) and the law's leaves
     are scalars or per-channel arrays.  Intensity of ``W``: ``λ E[c²]`` (1.4).
+
+    Arguments:
+        law: the jump law (:class:`NormalJumps`, :class:`ParetoJumps`).
+        intensity: the jump rate ``λ`` per unit time and channel.
+        max_jumps: most jumps counted per step and channel (a step with a larger probability of more
+            than this raises at run time).
+
+    Examples:
+        Pass it as a system's ``noise``; its intensity (1.4) is ``λ E[c²]``:
+
+        >>> import nhsde
+        >>> jumps = nhsde.noise.CompoundPoisson(law=nhsde.noise.NormalJumps(std=0.5), intensity=2.0)
+        >>> float(jumps.variance_rate())
+        0.5
+        >>> float(nhsde.noise.Levy(jumps=jumps).variance_rate())  # plus the unit Wiener part
+        1.5
     """
 
     law: AbstractJumpLaw
@@ -210,6 +240,9 @@ class Levy(AbstractDriver):
     Intensity of ``W``: ``1 + λ E[c²]`` per channel (1.4).  The Wiener part is
     the :class:`~nhsde.noise.Wiener` path of the same key, so ``Levy`` with no
     jumps reproduces it.
+
+    Arguments:
+        jumps: the :class:`CompoundPoisson` part.
     """
 
     jumps: CompoundPoisson

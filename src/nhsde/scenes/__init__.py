@@ -57,7 +57,23 @@ SCENES = scene_registry(__name__)
 
 
 def get_scene(name: str) -> type[AbstractScene]:
-    """The scene class called ``name``; a clear error lists the known names."""
+    """The scene class called ``name``; a clear error lists the known names.
+
+    Arguments:
+        name: a scene's CLI name, a key of ``SCENES``.
+
+    Returns:
+        the scene class (construct it with keyword arguments).
+
+    Examples:
+        >>> from nhsde import scenes
+        >>> scenes.get_scene("ball-on-vibrating-plane")
+        <class 'nhsde.scenes._ball.BallOnVibratingPlane'>
+        >>> scenes.get_scene("ball")
+        Traceback (most recent call last):
+        ...
+        ValueError: unknown scene 'ball'; known scenes: ball-on-vibrating-plane, ...
+    """
     try:
         return SCENES[name]
     except KeyError:

@@ -91,6 +91,28 @@ class BallOnVibratingPlane(AbstractScene):
     the systematic and fluctuation drift), otherwise the state is ``(u_x, u_y)``;
     ``angular_velocity=True`` offers ``omega_x``, ``omega_y`` as observables from
     the rolling constraint (no extra state).
+
+    Arguments:
+        drift: keep the centre's position ``(x, y)`` in the state (role ``dependent_coordinate``).
+        angular_velocity: offer ``omega_x = −u_y/r``, ``omega_y = u_x/r`` as observables.
+        **params: the :class:`BallParameters` ``eps``, ``nu``, ``radius``, ``inertia_ratio``.
+
+    Examples:
+        From scene to drift statistics: build, simulate from rest, read the fluctuation drift ``K_{q''}``
+        of S0 (6.7), whose growth ``νδ²t/(4ε²)`` at large ``t`` is the ball's diffusion.
+
+        >>> import jax
+        >>> import nhsde
+        >>> scene = nhsde.scenes.BallOnVibratingPlane(eps=0.5, nu=1.0)
+        >>> system = scene.build()
+        >>> system.layout.names, system.layout.roles
+        (('x', 'y', 'u_x', 'u_y'), ('dependent_coordinate', 'dependent_coordinate', 'velocity', 'velocity'))
+        >>> nhsde.scenes.BallOnVibratingPlane(drift=False, angular_velocity=True).observable_names()
+        ('u_x', 'u_y', 'omega_x', 'omega_y')
+        >>> ens = nhsde.simulate(system, scene.initial_state(), jax.random.key(0), n_paths=64, t1=1.0, dt=0.1)
+        >>> drift = nhsde.statistics.drift_statistics(ens)
+        >>> drift.names, drift.fluctuation.shape
+        (('x', 'y'), (11, 2, 2))
     """
 
     name: ClassVar[str] = "ball-on-vibrating-plane"
@@ -130,7 +152,7 @@ class BallOnVibratingPlane(AbstractScene):
         )
 
     def initial_state(self):
-        """The ball at rest at the origin of the plane."""
+        """The ball at rest at the origin of the plane: zeros of shape ``(4,)`` (``(2,)`` without ``drift``)."""
         return jnp.zeros(4 if self.drift else 2)
 
 
@@ -158,6 +180,23 @@ def ball_covariances(t, eps, nu, delta):
     ``k_xx = νδ²/(4ε²) [t − 2(1 − e^{−2εt})/(2ε) + (1 − e^{−4εt})/(4ε)]``;
     limits ``t → ∞`` are S0's ``νδ²/(4ε)``, ``νδ²/(8ε²)``, ``νδ²t/(4ε²)``.
     At ``ε → 0`` they tend to ``νδ²t``, ``νδ²t²/2``, ``νδ²t³/3`` (Brownian velocity).
+
+    Arguments:
+        t: time since the deterministic start (scalar or array).
+        eps: friction ``ε``.
+        nu: noise intensity ``ν`` per axis.
+        delta: ``δ = 1/(1 + κ)`` (``5/7`` for a homogeneous ball; :attr:`BallParameters.delta`).
+
+    Returns:
+        ``(k_xx, k_xu, k_uu)`` per axis, shaped like ``t``; differentiable in every argument.
+
+    Examples:
+        Long after the start ``k_uu → νδ²/(4ε)`` and ``k_xx − νδ²t/(4ε²) → −3νδ²/(16ε³)``:
+
+        >>> from nhsde.scenes import ball_covariances
+        >>> k_xx, k_xu, k_uu = ball_covariances(50.0, 1.0, 1.0, 1.0)
+        >>> print(round(float(k_xx), 4), round(float(k_xu), 4), round(float(k_uu), 4))
+        12.3125 0.125 0.25
     """
     g = nu * delta**2
     s = eps * t

@@ -68,11 +68,20 @@ class AbstractScene(eqx.Module):
 
     @abc.abstractmethod
     def build(self) -> StochasticSystem:
-        """The stochastic system of this scene."""
+        """The stochastic system of this scene.
+
+        Returns:
+            a :class:`~nhsde.StochasticSystem` whose ``params`` are this scene's ``params`` and whose state
+            holds what the scene's options ask for.
+        """
 
     @abc.abstractmethod
     def initial_state(self) -> Any:
-        """A ``(d,)`` state of :meth:`build`'s system."""
+        """A ``(d,)`` state of :meth:`build`'s system.
+
+        Returns:
+            a ``(d,)`` array, the scene's documented starting state (``simulate``'s ``y0``).
+        """
 
     def observable_names(self) -> tuple[str, ...]:
         """The names :meth:`build`'s system can observe (``system.observe(names)``)."""

@@ -172,6 +172,12 @@ class BodyOnVibratingPlane(AbstractScene):
     velocity, coloured plane velocity ``π`` in the state); ``drift=True`` keeps
     the horizontal axis ``α`` and the contact point ``(x, y)``.  State
     ``(ω, γ)`` (body axes).  Observables ``theta`` (nutation angle) and ``energy``.
+
+    Arguments:
+        body: the rolling :class:`~nhsde.bodies.RigidBody` (default: the oblate spheroid above).
+        friction: ``'phi1'`` or ``'phi2'``, S0 §5.
+        drift: keep ``α`` and the contact point ``(x, y)`` in the state.
+        **params: the :class:`VibratingPlaneParameters` ``eps``, ``nu``, ``gravity``.
     """
 
     name: ClassVar[str] = "body-on-vibrating-plane"

@@ -92,6 +92,10 @@ class ChaplyginBall(AbstractScene):
     State ``(M, γ)`` (angular momentum about the contact point, upward vertical in
     the body axes); ``drift=True`` adds the horizontal axis ``α`` and the contact
     point ``(x, y)``.  Additive noise; observable ``energy`` ``H = ½(M, ω)``.
+
+    Arguments:
+        drift: keep ``α`` and the contact point ``(x, y)`` in the state.
+        **params: the :class:`ChaplyginBallParameters`.
     """
 
     name: ClassVar[str] = "chaplygin-ball"

@@ -92,6 +92,20 @@ class ChaplyginSleigh(AbstractScene):
     state; otherwise the state is ``(v, ω)`` alone (their dynamics do not involve
     the position).  The observable ``energy`` is ``H``; in Itô calculus
     ``dE[H]/dt = −4ε E[H] + ν``.
+
+    Arguments:
+        drift: keep the contact point ``(x, y)`` and heading ``θ`` in the state.
+        **params: the :class:`SleighParameters`.
+
+    Examples:
+        >>> import nhsde
+        >>> scene = nhsde.scenes.ChaplyginSleigh(eps=0.1, nu=0.5)
+        >>> scene.build().layout.names
+        ('x', 'y', 'theta', 'v', 'omega')
+        >>> print(scene.initial_state())
+        [0. 0. 0. 1. 0.]
+        >>> nhsde.scenes.ChaplyginSleigh(drift=False).observable_names()
+        ('v', 'omega', 'energy')
     """
 
     name: ClassVar[str] = "chaplygin-sleigh"

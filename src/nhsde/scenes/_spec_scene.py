@@ -53,7 +53,7 @@ class AbstractSpecScene(AbstractScene):
         """``(q, q̇)`` of the initial state (velocities on the constraints)."""
 
     def spec(self) -> MechanicalSpec:
-        """The mechanical specification."""
+        """The mechanical specification: ``coordinates``, ``params`` and the ``terms``."""
         return MechanicalSpec(coordinates=self.coordinates, params=self.params, **self.terms)
 
     def form(self) -> AbstractForm:
@@ -62,7 +62,17 @@ class AbstractSpecScene(AbstractScene):
         return formulate(self.spec(), self.route, dependent=self.dependent, reference=q, stabilization=rate)
 
     def build(self) -> StochasticSystem:
+        """The stochastic system of :meth:`spec` by the scene's ``route``.
+
+        Returns:
+            the :class:`~nhsde.StochasticSystem` of :meth:`form`.
+        """
         return self.form().system()
 
     def initial_state(self):
+        """The state of :meth:`configuration` ``(q, q̇)`` in the route's variables.
+
+        Returns:
+            a ``(d,)`` state of :meth:`build`'s system.
+        """
         return self.form().state(*self.configuration())

@@ -62,7 +62,32 @@ def _names_with_role(ens: AbstractMoments, role: str) -> tuple[str, ...]:
 
 
 def drift_statistics(ens: AbstractMoments) -> DriftStatistics:
-    """Systematic and fluctuation drift (6.7) of the saved dependent coordinates."""
+    """Systematic and fluctuation drift (6.7) of the saved dependent coordinates.
+
+    ``m_{q''}(t) = E q''(t)`` and ``K_{q''}(t) = Cov q''(t)``, read from the saved components whose
+    role is ``dependent_coordinate`` (build the scene with ``drift=True`` and save them).
+
+    Arguments:
+        ens: an :class:`~nhsde.Ensemble` from :func:`~nhsde.simulate` or the moments of
+            :func:`normal_approximation`.
+
+    Returns:
+        a :class:`DriftStatistics`: ``systematic`` ``(n, k)``, ``fluctuation`` ``(n, k, k)`` at ``ens.ts``, with
+        standard errors for Monte Carlo (``None`` for moment equations).
+
+    Examples:
+        The ball of S0 (3.1) from rest has no systematic drift; its fluctuation drift grows like ``νδ²t/(4ε²)``:
+
+        >>> import nhsde
+        >>> from nhsde import statistics
+        >>> scene = nhsde.scenes.BallOnVibratingPlane(eps=1.0, nu=1.0)
+        >>> moments = statistics.normal_approximation(scene.build(), scene.initial_state(), t1=8.0, dt=0.5, order=3)
+        >>> drift = statistics.drift_statistics(moments)
+        >>> drift.names, drift.systematic_se
+        (('x', 'y'), None)
+        >>> print(float(drift.systematic[-1, 0]), round(float(drift.fluctuation[-1, 0, 0]), 4))
+        0.0 0.9247
+    """
     names = _names_with_role(ens, "dependent_coordinate")
     if not names:
         raise ValueError(
@@ -88,6 +113,26 @@ def effective_diffusion(ens: AbstractMoments, t_from: float | None = None) -> Fl
 
     In a stationary regime ``K_{q''}(t) ≈ 2 D t + const`` (Green–Kubo); ``t_from``
     defaults to the second half of the run.
+
+    Arguments:
+        ens: moments with the dependent coordinates saved (as for :func:`drift_statistics`).
+        t_from: first save time of the fit (default: the middle of the run); at least two save times.
+
+    Returns:
+        ``D``, ``(k, k)`` over the dependent coordinates, differentiable in the system's parameters.
+
+    Examples:
+        The ball's ``D = νδ²/(8ε²)`` (S0 §3; ``δ = 5/7``):
+
+        >>> import nhsde
+        >>> from nhsde import statistics
+        >>> scene = nhsde.scenes.BallOnVibratingPlane(eps=1.0, nu=1.0)
+        >>> moments = statistics.normal_approximation(scene.build(), scene.initial_state(), t1=8.0, dt=0.5, order=3)
+        >>> print(statistics.effective_diffusion(moments).round(4))
+        [[0.0638 0.    ]
+         [0.     0.0638]]
+        >>> print(round((5 / 7) ** 2 / 8, 4))
+        0.0638
     """
     stats = drift_statistics(ens)
     ts = ens.ts
@@ -102,7 +147,29 @@ def effective_diffusion(ens: AbstractMoments, t_from: float | None = None) -> Fl
 
 
 def stationary_moments(ens: AbstractMoments, t_from: float) -> StationaryMoments:
-    """Mean and covariance of the non-drifting saved components, averaged over ``t ≥ t_from``."""
+    """Mean and covariance of the non-drifting saved components, averaged over ``t ≥ t_from``.
+
+    Arguments:
+        ens: moments from :func:`~nhsde.simulate` or :func:`normal_approximation`.
+        t_from: start of the stationary regime; the save times ``t ≥ t_from`` are averaged with equal weights.
+
+    Returns:
+        a :class:`StationaryMoments` of the saved components that are not dependent coordinates.
+
+    Examples:
+        The ball's velocity variance ``νδ²/(4ε)`` (S0 (3.1)):
+
+        >>> import nhsde
+        >>> from nhsde import statistics
+        >>> scene = nhsde.scenes.BallOnVibratingPlane(eps=1.0, nu=1.0)
+        >>> moments = statistics.normal_approximation(scene.build(), scene.initial_state(), t1=8.0, dt=0.5, order=3)
+        >>> stationary = statistics.stationary_moments(moments, t_from=4.0)
+        >>> stationary.names
+        ('u_x', 'u_y')
+        >>> print(stationary.cov.round(4))
+        [[0.1276 0.    ]
+         [0.     0.1276]]
+    """
     names = tuple(n for n, r in zip(ens.names, ens.roles) if r != "dependent_coordinate")
     if not names:
         raise ValueError(f"only dependent coordinates were saved ({ens.names}); nothing is stationary.")
@@ -134,6 +201,15 @@ def green_kubo(system: StochasticSystem, ens: Ensemble, *, t_from: float, max_la
     ``ens`` must hold the whole state per path (``Save(paths=True)``); the
     velocities ``Λ = q̇''`` (the drift's ``q''`` rows) at the save times
     ``t ≥ t_from`` give ``C(τ)`` for lags up to ``max_lag`` (trapezoid rule).
+
+    Arguments:
+        system: the system ``ens`` was simulated from.
+        ens: an :class:`~nhsde.Ensemble` with the whole state per path.
+        t_from: start of the stationary window.
+        max_lag: the largest lag ``τ_max`` (at least one save spacing, shorter than the window).
+
+    Returns:
+        a :class:`GreenKubo` with the autocorrelation, ``diffusion`` and its Monte-Carlo standard error.
     """
     if ens.paths is None or ens.failed is None or ens.names != system.layout.names:
         raise ValueError(

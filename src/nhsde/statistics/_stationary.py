@@ -122,13 +122,34 @@ def stationary_density(
     """The exact stationary density ``c N exp(−αH)`` of S0 Statements 1–2, or a ``ValueError`` naming the failing
     condition.
 
-    - ``hamiltonian(x, params)``: the first integral ``H`` of the frictionless,
-      noiseless flow, ``x`` the state without the dependent coordinates.
-    - ``invariant_density(x, params) > 0``: ``N`` of Statement 2 (default 1: Statement 1).
-    - ``friction``, ``noise``: names of the parameters that switch friction and noise off at 0.
-    - ``points``: test points ``(n, k)`` for the conditions (default: 64 standard normal points).
-    - ``quadrature_nodes``: Gauss–Legendre nodes per dimension for the normalising integral; by default they are
-      doubled from 96 until the integral converges (at most 2²² points), and a given number is only checked.
+    Arguments:
+        system: a normal (Wiener-driven) system; its dependent coordinates are left out.
+        hamiltonian: ``hamiltonian(x, params)``, the first integral ``H`` of the frictionless,
+            noiseless flow, ``x`` the state without the dependent coordinates.
+        invariant_density: ``invariant_density(x, params) > 0``, ``N`` of Statement 2 (default 1: Statement 1).
+        friction, noise: names of the parameters that switch friction and noise off at 0.
+        points: test points ``(n, k)`` for the conditions (default: 64 standard normal points).
+        rtol: relative tolerance of the checks of conditions 1–4.
+        quadrature_nodes: Gauss–Legendre nodes per dimension for the normalising integral; by default they are
+            doubled from 96 until the integral converges (at most 2²² points), and a given number is only checked.
+
+    Returns:
+        a :class:`StationaryDensity` with ``alpha``, ``pdf``/``log_pdf`` and, up to three dimensions, the
+        normaliser and moments.
+
+    Raises:
+        ValueError: naming the first of the conditions 1–5 that fails.
+
+    Examples:
+        The ball's velocity (S0 (3.1)) with ``H = |u|²/2``: ``α = 4ε/(νδ²)``, S0 (4.1):
+
+        >>> import nhsde
+        >>> system = nhsde.scenes.BallOnVibratingPlane(eps=1.0, nu=1.0, drift=False).build()
+        >>> rho = nhsde.statistics.stationary_density(system, lambda x, p: 0.5 * (x[0] ** 2 + x[1] ** 2))
+        >>> print(round(float(rho.alpha), 4), round(4 / (5 / 7) ** 2, 4))
+        7.84 7.84
+        >>> print(rho.moments().cov.diagonal().round(4))
+        [0.1276 0.1276]
     """
     system = _normal_ito_system(system)
     layout = system.layout

@@ -124,6 +124,19 @@ def stationary_drift(
     then solves ``ṁ_x = 0``, ``K̇_x = 0`` for the components ``x`` other than
     ``q''``.  Raises if the residual stays above ``rtol`` (relative) or if the
     linearised drift ``Ā`` of ``x`` is not Hurwitz (no stationary regime).
+
+    Arguments:
+        system: the SDE, with dependent coordinates ``q''`` in its state.
+        y0, cov0: initial mean and covariance (default 0) of the relaxation run.
+        t_relax: length of the relaxation run before Newton's method.
+        dt: its Dopri8 step.
+        order: Gauss–Hermite nodes per component.
+        newton_steps: Newton iterations on the stationary moment equations.
+        rtol: accepted relative residual.
+
+    Returns:
+        a :class:`StationaryDrift`: ``rate = Λ₀``, ``gain = L``, ``jacobian = Ā``, the stationary moments of
+        ``x``, the Green–Kubo ``diffusion`` and ``systematic(ts)``/``fluctuation(ts)`` of ``q''``.
     """
     y0, cov0 = initial_moments(system, y0, cov0)
     closure = gaussian_closure(system, y0.dtype, order)

@@ -1,0 +1,63 @@
+"""The ``>>>`` examples in the docstrings run and print what they show.
+
+Every module of the package is searched, the private ones included: the public names are re-exported
+from private modules (``nhsde._simulate.simulate`` is ``nhsde.simulate``), and their docstrings live
+there.  ``doctest`` only collects objects defined in the module it searches, so each example runs once.
+"""
+
+import doctest
+import importlib
+import io
+import pkgutil
+
+import jax
+
+# the examples print float64 values, as the tests compute them (conftest.py does the same for the suite)
+jax.config.update("jax_enable_x64", True)
+
+import pytest
+
+import nhsde
+
+SKIP = {"nhsde.runs.__main__"}  # running it is the command line
+MIN_DOCSTRINGS = 30
+"""Fewer docstrings with examples than this means the collection broke, not that the docs lost them."""
+FLAGS = doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE
+
+
+def _module_names() -> list[str]:
+    names = ["nhsde"]
+    for info in pkgutil.walk_packages(nhsde.__path__, prefix="nhsde."):
+        if info.name not in SKIP:
+            names.append(info.name)
+    return sorted(names)
+
+
+MODULES = _module_names()
+
+
+def _tests(name: str) -> list[doctest.DocTest]:
+    module = importlib.import_module(name)
+    tests = doctest.DocTestFinder(exclude_empty=True).find(module, name, globs=dict(vars(module)))
+    return sorted((t for t in tests if t.examples), key=lambda t: t.name)
+
+
+def test_examples_are_collected():
+    found = {name: [t.name for t in _tests(name)] for name in MODULES}
+    documented = [n for names in found.values() for n in names]
+    assert len(documented) >= MIN_DOCSTRINGS, f"only {len(documented)} docstrings with examples found: {documented}"
+    for must in ("nhsde._simulate.simulate", "nhsde.scenes._ball.BallOnVibratingPlane"):
+        assert must in documented, f"{must} lost its example"
+
+
+@pytest.mark.parametrize("name", MODULES)
+def test_module_examples(name):
+    tests = _tests(name)
+    if not tests:
+        return
+    runner = doctest.DocTestRunner(optionflags=FLAGS)
+    report = io.StringIO()
+    for test in tests:
+        runner.run(test, out=report.write)
+    result = runner.summarize(verbose=False)
+    assert result.failed == 0, f"{result.failed} of {result.attempted} examples in {name} failed:\n{report.getvalue()}"
