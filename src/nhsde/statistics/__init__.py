@@ -35,6 +35,7 @@ from ._normal_approximation import (
     NormalApproximation as NormalApproximation,
     normal_approximation as normal_approximation,
 )
+from ._sensitivities import Sensitivities as Sensitivities, moment_sensitivities as moment_sensitivities
 from ._stationary import StationaryDensity as StationaryDensity, stationary_density as stationary_density
 from ._stationary_drift import StationaryDrift as StationaryDrift, stationary_drift as stationary_drift
 from ._variance_reduction import Antithetic as Antithetic, antithetic as antithetic
