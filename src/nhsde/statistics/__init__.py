@@ -8,11 +8,19 @@
 - Exact stationary densities (S0 Statements 1–2): :func:`stationary_density`.
 - Statistics at a requested accuracy for less work: :func:`extrapolate`
   (Richardson–Romberg / Talay–Tubaro), :func:`multilevel_monte_carlo` (Giles),
-  :func:`antithetic` paths.
+  :func:`antithetic` paths, :func:`control_variate` (the linearised system
+  driven by the same increments).
+- Derivatives of simulated moments with their standard errors: :func:`moment_sensitivities`.
 - The Fokker–Planck equation on a grid (1 and 2 components):
   :func:`stationary_fokker_planck`, :func:`fokker_planck`.
 """
 
+from ._control_variate import (
+    ControlVariateEstimate as ControlVariateEstimate,
+    PerEntry as PerEntry,
+    control_variate as control_variate,
+    linearised_system as linearised_system,
+)
 from ._drift import (
     DriftStatistics as DriftStatistics,
     GreenKubo as GreenKubo,

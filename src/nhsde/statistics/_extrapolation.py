@@ -136,9 +136,10 @@ def coupled_paths(
     n_paths: int,
     antithetic: bool,
     batching: Batching | None,
+    first_path: int = 0,
 ) -> list[Array]:
-    """Per-path saved values ``(n_paths, n, k)`` of a solve at each of ``dts`` on one Brownian path of step
-    ``brownian_dt``; with ``antithetic``, then the same for the reflected paths."""
+    """Per-path saved values ``(n_paths, n, k)`` of paths ``first_path …`` solved at each of ``dts`` on one Brownian
+    path of step ``brownian_dt``; with ``antithetic``, then the same for the reflected paths."""
     systems = (system, reflected(system)) if antithetic else (system,)
     out = []
     for s in systems:
@@ -154,6 +155,7 @@ def coupled_paths(
                 solver=solver,
                 save=save,
                 batching=batching,
+                first_path=first_path,
             )
             assert ens.paths is not None
             out.append(ens.paths)

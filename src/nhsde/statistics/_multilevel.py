@@ -21,13 +21,14 @@ path-steps, level variance ``V_ℓ`` measured):
 
 so that the Monte-Carlo variance is ``ε²/2``; levels are added (Giles (2015),
 Algorithm 1) until the bias estimate ``max(|Ŷ_L|, |Ŷ_{L−1}|/2^α)/(2^α − 1)`` of a
-scheme of weak order ``α`` is below ``ε/√2``.  Levels run in pieces of fixed size
-``P_ℓ`` (``piece_paths`` halved per level, at least 64), piece ``j`` of level ``ℓ``
-with key ``fold_in(fold_in(key, ℓ), j)``: every piece of a level reuses one
-compiled program, and the paths of ``N_ℓ`` samples depend on ``(key, ℓ, N_ℓ)``
-only.  With the allocation fixed (``n_paths=result.n_paths_per_level``) the
-estimator is a differentiable function of the system's parameters (``jax.jacfwd``,
-``jax.grad``).  Three-point increments are refused: their sums are not three-point.
+scheme of weak order ``α`` is below ``ε/√2``.  Level ``ℓ`` draws paths
+``0, 1, …`` of the key ``fold_in(key, ℓ)`` (the counter-based driver makes path
+``i`` the same in any run), in runs of ``P_ℓ 2^j`` paths (``P_ℓ = piece_paths``
+halved per level, at least 64): the samples of ``N_ℓ`` depend on ``(key, ℓ, N_ℓ)``
+only, and a few compiled programs per level serve every run.  With the
+allocation fixed (``n_paths=result.n_paths_per_level``) the estimator is a
+differentiable function of the system's parameters (``jax.jacfwd``, ``jax.grad``).
+Three-point increments are refused: their sums are not three-point.
 """
 
 from __future__ import annotations
@@ -105,7 +106,7 @@ def _pick(kind, i, j, mean, cov):
 
 
 class _Levels:
-    """Level runs: pieces of fixed size per level, their per-path values kept."""
+    """Level runs, their per-path values kept."""
 
     def __init__(self, system, y0, key, *, t0, t1, h0, solver, save, antithetic, piece_paths, batching):
         self.args = (system, y0)
@@ -113,7 +114,7 @@ class _Levels:
         self.opts = dict(t0=t0, t1=t1, solver=solver, save=save, antithetic=antithetic, batching=batching)
         self.h0, self.piece_paths, self.antithetic = h0, piece_paths, antithetic
         self.steps0 = round((t1 - t0) / h0)
-        self.paths: list[list[list[Array]]] = []  # level → piece → sets
+        self.paths: list[list[list[Array]]] = []  # level → run → sets
 
     def piece(self, level: int) -> int:
         return max(BLOCK, (self.piece_paths >> level) // BLOCK * BLOCK)
@@ -122,19 +123,22 @@ class _Levels:
         fine = self.steps0 * 2**level
         return (2.0 if self.antithetic else 1.0) * (fine + (fine // 2 if level else 0))
 
-    def run(self, level: int, piece: int, n_paths: int) -> list[Array]:
+    def run(self, level: int, first_path: int, n_paths: int) -> list[Array]:
         h = self.h0 / 2**level
         dts = (h, 2 * h) if level else (h,)
-        key = jr.fold_in(jr.fold_in(self.key, level), piece)
-        return coupled_paths(*self.args, key, dts=dts, brownian_dt=h, n_paths=n_paths, **self.opts)
+        key = jr.fold_in(self.key, level)
+        return coupled_paths(
+            *self.args, key, dts=dts, brownian_dt=h, n_paths=n_paths, first_path=first_path, **self.opts
+        )
 
     def grow(self, level: int, n_paths: int):
-        """Run pieces until level ``level`` has ``n_paths`` samples (a multiple of its piece, or the remainder)."""
+        """Run level ``level`` up to ``n_paths`` samples, in runs of the piece times a power of two (then the rest)."""
         while len(self.paths) <= level:
             self.paths.append([])
-        pieces, size = self.paths[level], self.piece(level)
-        while self.count(level) < n_paths:
-            pieces.append(self.run(level, len(pieces), min(size, n_paths - self.count(level))))
+        piece = self.piece(level)
+        while (missing := n_paths - self.count(level)) > 0:
+            size = piece << ((missing // piece).bit_length() - 1) if missing >= piece else missing
+            self.paths[level].append(self.run(level, self.count(level), size))
 
     def count(self, level: int) -> int:
         return sum(p[0].shape[0] for p in self.paths[level]) if level < len(self.paths) else 0
@@ -187,7 +191,8 @@ def multilevel_monte_carlo(
       :class:`~nhsde.PlatenWeak2`, else 1, which overestimates the bias of a
       second-order scheme and is safe).
     - ``antithetic``: pair every path with its reflection ``W → −W``.
-    - ``piece_paths``: paths per run on level 0 (halved per level, at least 64).
+    - ``piece_paths``: the smallest run on level 0 (halved per level, at least 64): samples are added in
+      multiples of it.
     - ``max_levels``: the most levels to add before giving up.
     """
     if not isinstance(system, StochasticSystem):

@@ -1,0 +1,386 @@
+"""Control variates from the linearised system: the same paths, a control with exact moments.
+
+The control is the system linearised about a reference motion ``p(t)`` and
+driven by the same increments (same key, solver and steps; the counter-based
+driver gives two systems with one ``noise_dim`` the same Brownian path):
+
+    dC = [a(p) + ∂a/∂Z(p) (C − p)] dt + b(p) dW,   C(t0) = Z(t0),
+
+with ``p`` the noiseless motion ``ṗ = a(p)``, ``p(t0) = y0`` (``linearisation="mean"``,
+the mean motion to first order in the noise) or a fixed state (a steady motion).
+``C`` is Gaussian; its mean and covariance solve the linear moment (Lyapunov)
+equations ``ṁ = a(p) + ∂a(p)(m − p)``, ``K̇ = ∂a(p) K + K ∂a(p)ᵀ + b(p) diag(ν) b(p)ᵀ``
+(S0 §6, exact for a linear system), integrated by the library's moment equations
+(fixed Dopri8 steps on the pair ``(p, C)``).  A saved observable ``f`` is
+controlled by its second-order Taylor polynomial about ``p``,
+``f_C = f(p) + gᵀu + ½uᵀHu`` with ``u = C − p`` (``f_C = C_i`` for a state
+component, ``f_C = f(C)`` for a quadratic ``f`` such as an energy), whose moments
+are exact for Gaussian ``u ~ N(μ, K)``:
+
+    E f_C = f(p) + gᵀμ + ½μᵀHμ + ½ tr(HK),
+    Cov(f_C, h_C) = G_fᵀ K G_h + ½ tr(H_f K H_h K),   G = g + Hμ
+
+(Isserlis).  Drivers with centred jumps (S0 (1.3)) enter the moment equations
+through their intensity ``ν`` (S0 (1.4)) and the same jumps drive both solves,
+but ``C`` is then not Gaussian: only state components may be saved.
+
+Every saved mean and covariance entry ``Y`` (per-path value, or centred
+product for a covariance) gets its own coefficient
+``β = Cov(Y, C)/Var(C)`` estimated from the same paths, and
+
+    Ŷ_cv = Ŷ − β (Ĉ − E C),   SE² = Var(Y − βC)/N
+
+(Glasserman, *Monte Carlo Methods in Financial Engineering*, 2004, §4.1);
+variances and cross-covariances of the per-path influences are those of
+:func:`paired_moments` (polarisation of ``Y``, ``C`` and ``Y + C``), so the
+conventions are the library's.  ``variance_reduction = Var Y / Var(Y − βC)``.
+
+Bias.  The exact moments are those of the continuous linear SDE, while ``C`` is
+simulated by the same discrete scheme as ``Z``: the estimate has bias
+``bias(Y) − β·bias(C)`` (plus the ``O(1/N)`` bias of an estimated β).  Where
+``Z`` is close to ``C`` (β ≈ 1) the discretisation bias of the linear part is
+removed with the variance; for a linear system ``Z ≡ C`` path by path, β = 1 and
+the estimate is the exact continuous value up to rounding.
+
+Derivatives.  ``β`` is held fixed under differentiation (``jax.lax.stop_gradient``):
+then ``∂Ŷ_cv = ∂Ŷ − β(∂Ĉ − ∂E C)`` is itself a control-variate estimate of the
+pathwise derivative (controlled by the tangent of ``C``, whose mean ``∂E C`` is
+exact), with the same bias structure as above; no derivative is taken of a ratio
+of sample covariances (noisy, and 0/0 where the control has no variance, e.g. at
+``t0``).  Differentiating β too would only add ``∂β·(Ĉ − E C)``, a term of mean
+zero up to the scheme's bias: more noise, no less bias.
+
+Cost: two solves of ``n_paths`` paths (``cost = 2·n_paths·steps`` path-steps);
+a control step also costs one Jacobian-vector product of the drift.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from .._ensemble import Save
+from .._misc import cast_floats, check_key, check_number, check_steps
+from .._options import AbstractSteps, Batching, FixedSteps
+from .._params import validated
+from .._simulate import MIN_PATHS, simulate
+from .._solvers import solver_needs
+from .._system import StateLayout, StochasticSystem
+from ..noise import driver_intensity
+from ._extrapolation import Estimate, paired_moments, paths_save, roles_of, safe_sqrt
+from ._moments import GaussianClosure, integrate_moments
+
+__all__ = ["ControlVariateEstimate", "PerEntry", "control_variate", "linearised_system"]
+
+_REFERENCE = "@reference"
+_ODE_STEPS = 256  # fewest Dopri8 steps of the moment equations (and ≥ 4 per SDE step)
+
+
+class PerEntry(eqx.Module):
+    """A number per saved mean ``(n, k)`` and per covariance entry ``(n, k, k)``."""
+
+    mean: Float[Array, "n k"]
+    cov: Float[Array, "n k k"]
+
+
+class ControlVariateEstimate(Estimate):
+    """Control-variate means and covariances (module docstring) with their standard errors, and
+
+    - ``plain``: the uncorrected :class:`Estimate` of the same paths;
+    - ``coefficient``: β per entry; ``variance_reduction``: ``Var Y / Var(Y − βC)`` per entry
+      (``inf`` where the residual has no variance, 1 where neither has any);
+    - ``control``: the exact mean and covariance of the control's saved quantities;
+    - ``cost``: path-steps of both solves, ``2·n_paths·steps`` (``plain_cost``: one solve).
+    """
+
+    plain: Estimate
+    coefficient: PerEntry
+    variance_reduction: PerEntry
+    control: PerEntry
+    n_steps: int = eqx.field(static=True)
+
+    @property
+    def plain_cost(self) -> float:
+        return float(int(self.n_paths) * self.n_steps)
+
+    @property
+    def cost(self) -> float:
+        return 2.0 * self.plain_cost
+
+
+# ----------------------------------------------------------------------------- the control system
+
+
+class _LinearisedDrift(eqx.Module):
+    """Drift of ``(p, C)``: ``ṗ = a(p)`` (or 0 for a fixed reference), ``a(p) + ∂a(p)(C − p)`` (one jvp)."""
+
+    drift: Callable = eqx.field(static=True)
+    follow: bool = eqx.field(static=True)
+
+    def __call__(self, t, y, params):
+        d = y.shape[0] // 2
+        p, c = y[:d], y[d:]
+        a, lin = jax.jvp(lambda z: self.drift(t, z, params), (p,), (c - p,))
+        return jnp.concatenate([a if self.follow else jnp.zeros_like(a), a + lin])
+
+
+class _FrozenDiffusion(eqx.Module):
+    """Diffusion of ``(p, C)``: none on ``p``, ``b(p)`` on ``C``."""
+
+    diffusion: Callable = eqx.field(static=True)
+
+    def __call__(self, t, y, params):
+        d = y.shape[0] // 2
+        b = self.diffusion(t, y[:d], params)
+        return jnp.concatenate([jnp.zeros_like(b), b])
+
+
+class _BlockLinear(eqx.Module):
+    """The declared linear drift ``A`` of ``(p, C)``: ``diag(A, A)`` (``diag(0, A)`` for a fixed reference)."""
+
+    linear: Callable = eqx.field(static=True)
+    follow: bool = eqx.field(static=True)
+
+    def __call__(self, params):
+        a = self.linear(params)
+        z = jnp.zeros_like(a)
+        return jnp.block([[a if self.follow else z, z], [z, a]])
+
+
+class _Taylor2(eqx.Module):
+    """``f(p) + gᵀu + ½uᵀHu``, ``u = C − p``: the control of the observable ``f`` on the state ``(p, C)``."""
+
+    fn: Callable = eqx.field(static=True)
+
+    def __call__(self, t, y, params):
+        d = y.shape[0] // 2
+        p, u = y[:d], y[d:] - y[:d]
+        f = lambda z: self.fn(t, z, params)
+        g, hu = jax.jvp(jax.grad(f), (p,), (u,))
+        return f(p) + jnp.dot(g, u) + 0.5 * jnp.dot(u, hu)
+
+
+def linearised_system(system: StochasticSystem, *, follow: bool = True) -> StochasticSystem:
+    """The control system on the state ``(p, C)`` (names ``'<name>@reference'``, then the original names).
+
+    ``C`` is ``system`` (in Itô form) linearised about ``p``; ``p`` follows the
+    noiseless flow (``follow=True``) or stays where it starts.  Same driver,
+    ``noise_dim`` and parameters as ``system``; its observables are the
+    second-order Taylor polynomials of ``system``'s about ``p``.
+    """
+    if not isinstance(system, StochasticSystem):
+        raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
+    ito = system.converted("ito")
+    layout = StateLayout(
+        tuple(n + _REFERENCE for n in ito.layout.names) + ito.layout.names, ito.layout.roles + ito.layout.roles
+    )
+    linear = None if ito.linear_drift is None else _BlockLinear(ito.linear_drift, follow)
+    return StochasticSystem(
+        drift_fn=_LinearisedDrift(ito.drift_fn, follow),
+        diffusion_fn=_FrozenDiffusion(ito.diffusion_fn),
+        params=ito.params,
+        layout=layout,
+        noise_dim=ito.noise_dim,
+        interpretation="ito",
+        additive_noise=ito.additive_noise,
+        observables=tuple((name, _Taylor2(fn)) for name, fn in ito.observables),
+        noise=ito.noise,
+        linear_drift=linear,
+    )
+
+
+# ----------------------------------------------------------------------------- exact moments of the control
+
+
+def _control_moments(system: StochasticSystem, params, names, ts, p, m, k):
+    """Exact ``(mean (n, k), cov (n, k, k))`` of the saved quantities' controls, from the Gaussian ``C ~ N(m, K)``
+    and the Taylor point ``p`` at each time (module: Isserlis)."""
+    observe = system.observe(names)
+
+    def at(t, p, m, k):
+        f = lambda z: observe(t, z, params)
+        value, grad, hess = f(p), jax.jacfwd(f)(p), jax.hessian(f)(p)  # (q,), (q, d), (q, d, d)
+        mu = m - p
+        mean = value + grad @ mu + 0.5 * jnp.einsum("i,qij,j->q", mu, hess, mu) + 0.5 * jnp.einsum("qij,ji->q", hess, k)
+        g = grad + hess @ mu
+        hk = hess @ k  # (q, d, d)
+        cov = g @ k @ g.T + 0.5 * jnp.einsum("aij,bji->ab", hk, hk)
+        return mean, cov
+
+    return jax.vmap(at)(ts, p, m, k)
+
+
+# ----------------------------------------------------------------------------- the estimator
+
+
+def _split(var_y, var_c, var_sum):
+    """``(β, residual variance, reduction)`` from the variances of ``Y``, ``C`` and ``Y + C`` (polarisation)."""
+    cross = 0.5 * (var_sum - var_y - var_c)
+    ok = var_c > 0
+    beta = jax.lax.stop_gradient(jnp.where(ok, cross / jnp.where(ok, var_c, 1.0), 0.0))
+    resid = jnp.maximum(var_y - 2 * beta * cross + beta**2 * var_c, 0.0)
+    vy, vr = jax.lax.stop_gradient(var_y), jax.lax.stop_gradient(resid)
+    reduction = jnp.where(vr > 0, vy / jnp.where(vr > 0, vr, 1.0), jnp.where(vy > 0, jnp.inf, 1.0))
+    return beta, resid, reduction
+
+
+def _closure(control: StochasticSystem, dtype) -> GaussianClosure:
+    """The moment equations of the control (library's :class:`GaussianClosure`), evaluated at the mean.
+
+    ``p`` has no variance and ``C`` enters the drift linearly with ``b`` independent of ``C``, so expectations
+    under ``N(m, K)`` are values at ``m``: no cubature nodes are needed and the equations are exact.
+    """
+    params = cast_floats(validated(control.params), dtype)
+    system = eqx.tree_at(lambda s: s.params, control, params)
+    intensity = driver_intensity(control.noise, control.noise_dim, dtype)
+    return GaussianClosure(system, intensity, (), jnp.zeros((1, 0), dtype), jnp.ones((1,), dtype))
+
+
+@eqx.filter_jit
+def _statistics(closure, ito, params, names, p0, y0, y, c, t0, t1, n_ode, n_save):
+    """Exact control moments, plain and control moments of the paths, and ``(β, residual variance, reduction)``
+    for the means and the covariances."""
+    d = y0.shape[0]
+    zeros = jnp.zeros((2 * d, 2 * d), y0.dtype)
+    ts, ms, ks = integrate_moments(closure, jnp.concatenate([p0, y0]), zeros, t0, t1, n_ode, n_save)
+    exact_mean, exact_cov = _control_moments(ito, params, names, ts, ms[:, :d], ms[:, d:], ks[:, d:, d:])
+    plain = paired_moments([y], [1.0])
+    mean_c, cov_c, mvar_c, cvar_c = paired_moments([c], [1.0])
+    _, _, mvar_s, cvar_s = paired_moments([y, c], [1.0, 1.0])
+    split_m, split_c = _split(plain[2], mvar_c, mvar_s), _split(plain[3], cvar_c, cvar_s)
+    beta, resid, reduction = zip(split_m, split_c, strict=True)
+    return ts, exact_mean, exact_cov, plain, (mean_c, cov_c), beta, resid, reduction
+
+
+def _reference(system, y0, linearisation):
+    """``(follow, p0)``: the reference motion's kind and start."""
+    if isinstance(linearisation, str) or linearisation is None:
+        if linearisation not in (None, "mean"):
+            raise ValueError(
+                f"linearisation={linearisation!r}; allowed: 'mean' (the noiseless motion from y0) or a reference "
+                f"state of shape ({system.state_dim},) (e.g. a steady motion)."
+            )
+        return True, y0
+    try:
+        p0 = system.state(linearisation, "linearisation")
+    except ValueError as e:
+        raise ValueError(f"{e} linearisation must be 'mean' or a reference state (e.g. a steady motion).") from None
+    return False, p0.astype(y0.dtype)
+
+
+def control_variate(
+    system: StochasticSystem,
+    y0,
+    key,
+    *,
+    n_paths: int,
+    t1: float,
+    dt: float | None = None,
+    steps: AbstractSteps | None = None,
+    t0: float = 0.0,
+    solver="euler",
+    save: Save | None = None,
+    linearisation=None,
+    batching: Batching | None = None,
+) -> ControlVariateEstimate:
+    """Means and covariances of the saved quantities with the linearised system as control variate (module).
+
+    Arguments as :func:`~nhsde.simulate` (fixed steps: ``dt`` or
+    ``steps=FixedSteps(dt)``; ``y0`` one state ``(d,)``); ``save`` defaults to the
+    whole state at ``t0`` and ``t1`` (per-path values are kept internally).
+    ``linearisation``: ``'mean'`` (default: about the noiseless motion from ``y0``)
+    or a state ``(d,)`` to linearise about (a steady motion; it may be traced).
+    Two solves of ``n_paths`` paths on one Brownian path: the system, and the
+    control of :func:`linearised_system`.  Any solver ``simulate`` accepts for the
+    system (Euler, Milstein, Heun, heun2, SRA1, exponential,
+    :class:`~nhsde.PlatenWeak2`); with a jump driver (Euler only), state components
+    only.  Differentiable in the
+    parameters with β held fixed (module).
+    """
+    if not isinstance(system, StochasticSystem):
+        raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
+    n_paths = check_number("n_paths", n_paths, integer=True)
+    if n_paths < MIN_PATHS:
+        raise ValueError(f"n_paths={n_paths}; must be ≥ {MIN_PATHS} (a covariance and its standard error need 4).")
+    if steps is not None:
+        if dt is not None:
+            raise TypeError(f"dt={dt} and steps={steps!r}: give the step once.")
+        if not isinstance(steps, FixedSteps):
+            raise ValueError(
+                f"steps={steps!r}: the control runs on the system's step grid; use dt=… or steps=FixedSteps(dt)."
+            )
+        dt = float(steps.dt)
+    if dt is None:
+        raise TypeError("control_variate needs a step: dt=… or steps=FixedSteps(dt).")
+    h = check_number("dt", dt, positive=True)
+    t0, t1 = check_number("t0", t0), check_number("t1", t1)
+    if t1 <= t0:
+        raise ValueError(f"t1={t1} must be > t0={t0}.")
+    n_steps = check_steps("dt", t1 - t0, h)
+    steps = FixedSteps(h) if steps is None else steps
+    y0 = system.state(y0, "y0")
+    follow, p0 = _reference(system, y0, linearisation)
+    control = linearised_system(system, follow=follow)
+    solver_needs(solver, system)  # names the solver if it cannot solve the system
+    save = paths_save(save, n_steps, system.layout.names)
+    assert save.names is not None
+    names = save.names
+    system.observe(names)  # unknown names raise naming save
+    observables = [n for n in names if n not in system.layout.names]
+    if not system.noise.continuous and observables:
+        raise ValueError(
+            f"save.names={names}: with the jump driver {type(system.noise).__name__} the control is not Gaussian, "
+            f"and the covariance of a nonlinear observable's control needs Gaussian fourth moments (Isserlis); "
+            f"save state components only, not {observables}."
+        )
+    key = check_key(key)
+
+    def run(s: StochasticSystem, start):
+        ens = simulate(
+            s, start, key, n_paths=n_paths, t0=t0, t1=t1, steps=steps, solver=solver, save=save, batching=batching
+        )
+        assert ens.paths is not None
+        return ens.paths
+
+    y, c = run(system, y0), run(control, jnp.concatenate([p0, y0]))
+
+    n_save = save.n
+    assert n_save is not None
+    n_ode = (n_save - 1) * math.ceil(max(4 * n_steps, _ODE_STEPS) / (n_save - 1))
+    ito = system.converted("ito")
+    ts, exact_mean, exact_cov, (mean_y, cov_y, mvar_y, cvar_y), (mean_c, cov_c), beta, resid, reduction = _statistics(
+        _closure(control, y0.dtype), ito, cast_floats(ito.params, y0.dtype), names, p0, y0, y, c, t0, t1, n_ode, n_save
+    )
+    (beta_m, beta_c), (resid_m, resid_c), (red_m, red_c) = beta, resid, reduction
+
+    count, roles = jnp.asarray(n_paths), roles_of(system, names)
+    plain_estimate = Estimate(
+        ts=ts,
+        mean=mean_y,
+        cov=cov_y,
+        mean_se=safe_sqrt(mvar_y),
+        cov_se=safe_sqrt(cvar_y),
+        n_paths=count,
+        names=names,
+        roles=roles,
+    )
+    return ControlVariateEstimate(
+        ts=ts,
+        mean=mean_y - beta_m * (mean_c - exact_mean),
+        cov=cov_y - beta_c * (cov_c - exact_cov),
+        mean_se=safe_sqrt(resid_m),
+        cov_se=safe_sqrt(resid_c),
+        plain=plain_estimate,
+        coefficient=PerEntry(mean=beta_m, cov=beta_c),
+        variance_reduction=PerEntry(mean=red_m, cov=red_c),
+        control=PerEntry(mean=exact_mean, cov=exact_cov),
+        n_paths=count,
+        names=names,
+        roles=roles,
+        n_steps=n_steps,
+    )
