@@ -245,7 +245,7 @@ fig.suptitle(
     rf"{SOLVER}, $\Delta t={DT}$"
 )
 fig.tight_layout()
-plot.save(fig, "ball_covariances.png")
+_ = plot.save(fig, "ball_covariances.png")
 
 # %% [markdown]
 # ## 2. Sensitivities by differentiating through the simulation
@@ -383,7 +383,7 @@ for col, (title, sign, curve, approx, mc_g, mc_se, exact) in enumerate(panels):
 axes[1, 0].set_ylabel(r"(MC − exact) / SE of $\partial k_{xx}$")
 fig.suptitle(rf"Sensitivities of $k_{{xx}}$ at $t_1={T1}$, $\nu={NU_G}$, $\delta={DELTA:.4f}$")
 fig.tight_layout()
-plot.save(fig, "ball_gradients.png")
+_ = plot.save(fig, "ball_gradients.png")
 
 # %% [markdown]
 # ## 3. The distribution of $u_x(t_1)$
@@ -450,7 +450,7 @@ ax.set_title(rf"Velocity at $t_1 = {T1}$ ($\varepsilon={EPS}$, $\nu={NU}$)")
 ax.legend(fontsize=8)
 ax.grid(alpha=0.3)
 fig.tight_layout()
-plot.save(fig, "ball_u_histogram.png")
+_ = plot.save(fig, "ball_u_histogram.png")
 
 # %%
 print(f"notebook finished in {time.perf_counter() - T_START:.1f} s")

@@ -97,7 +97,7 @@ for ax, (eps, nu) in zip(axes, [(1.0, 2.0), (1.0, 4.0)]):
     ax.set_ylabel("density")
     ax.legend(fontsize=8)
 fig.tight_layout()
-plot.save(fig, "nutation_density_spheroid.png", dpi=110)
+_ = plot.save(fig, "nutation_density_spheroid.png", dpi=110)
 
 # %% [markdown]
 # ## Routh's sphere: Jellett's integral survives the vibration

@@ -80,7 +80,7 @@ def solve(form, y0, ts, extra=None):
 # \qquad \lambda = m\,(2\dot r\dot u + r\ddot u). $$
 
 # %%
-rod = BeadOnRotatingRod(spin=0.7, wobble=0.4, wobble_rate=1.3)
+rod = BeadOnRotatingRod(spin=0.7, wobble=0.4, wobble_rate=1.3, eps=0.0)  # frictionless: ΔT is the reaction's work alone
 spec, p = rod.spec(), rod.params
 by_multipliers = mech.formulate(spec, "multipliers")
 by_gauss = mech.formulate(spec, "gauss")
@@ -119,7 +119,7 @@ ax[1].set_ylabel(r"$\lambda$")
 ax[1].legend()
 ax[1].set_title("the reaction by two routes")
 fig.tight_layout()
-plot.save(fig, "rod_energy_work.png", dpi=110)
+_ = plot.save(fig, "rod_energy_work.png", dpi=110)
 
 # %% [markdown]
 # ## 2. Gauss's principle, drawn
@@ -152,7 +152,7 @@ ax.set_aspect("equal")
 ax.legend(loc="lower left", fontsize=8)
 ax.set_title(f"compulsion Z at t = {float(ti):.2f}")
 fig.tight_layout()
-plot.save(fig, "gauss_compulsion.png", dpi=110)
+_ = plot.save(fig, "gauss_compulsion.png", dpi=110)
 
 # %% [markdown]
 # ## 3. Beghin's plate: servo-constraint versus contact

@@ -181,7 +181,7 @@ for col, (label, (i, j)) in enumerate({"k_xx": (0, 0), "k_xu": (0, 1), "k_uu": (
     ax.legend(fontsize=7, loc="lower right")
 fig.suptitle("Ball on a vibrating plane: observed covariances and the fitted closed form")
 fig.tight_layout()
-plot.save(fig, "fitting_ball_covariances.png")
+_ = plot.save(fig, "fitting_ball_covariances.png")
 
 # %% [markdown]
 # **Figure 2.** The $\chi^2$ landscape of the closed-form model over
@@ -227,7 +227,7 @@ ax.set(xlabel=r"$\varepsilon$", ylabel=r"$\nu$", title="estimates and their 2-SE
 ax.grid(alpha=0.3)
 ax.legend(fontsize=8)
 fig.tight_layout()
-plot.save(fig, "fitting_ball_landscape.png")
+_ = plot.save(fig, "fitting_ball_landscape.png")
 
 # %% [markdown]
 # ## 3. Are the error bars honest?
@@ -288,7 +288,7 @@ plot.density(
 axes[2].set(title="goodness of fit", xlabel=r"$\chi^2$ of each fit")
 fig.suptitle("Calibration of the reported standard errors (grey: ±2 SE of a histogram of that many fits)")
 fig.tight_layout()
-plot.save(fig, "fitting_calibration.png")
+_ = plot.save(fig, "fitting_calibration.png")
 
 # %% [markdown]
 # ## 4. A nonlinear scene: the noisy Chaplygin sleigh
@@ -357,7 +357,7 @@ for ax, (title, value, err, pick) in zip(axes, panels):
 axes[0].legend(fontsize=7)
 fig.suptitle(r"Noisy Chaplygin sleigh: data and fitted models ($\varepsilon=0.5$, $\nu=0.8$ true)")
 fig.tight_layout()
-plot.save(fig, "fitting_sleigh.png")
+_ = plot.save(fig, "fitting_sleigh.png")
 
 # %%
 print(f"\nnotebook ran in {time.perf_counter() - T_START:.0f} s")

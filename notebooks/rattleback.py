@@ -94,7 +94,7 @@ for ax, scene, top, name in ((axes[0], kl, 20.0, "Kane & Levinson"), (axes[1], v
     ax.set_title(f"{name}: real parts of the four roots")
 axes[1].set_ylim(-2, 2)
 fig.tight_layout()
-plot.save(fig, "rattleback_growth_rates.png", dpi=110)
+_ = plot.save(fig, "rattleback_growth_rates.png", dpi=110)
 
 # %% [markdown]
 # ## The growth rate on the nonlinear flow
@@ -150,7 +150,7 @@ axes[2].legend(fontsize=7)
 spin = np.sum(ys[:, :3] * ys[:, 3:], axis=1)
 print(f"variant: spin settles at {spin[-1]:.5f} rad/s (started at −50)")
 fig.tight_layout()
-plot.save(fig, "rattleback_growth_fit.png", dpi=110)
+_ = plot.save(fig, "rattleback_growth_fit.png", dpi=110)
 
 # %% [markdown]
 # ## Spin reversal

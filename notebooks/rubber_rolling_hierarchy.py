@@ -111,7 +111,7 @@ axes[0].set_title("Fig. 3: balanced ball I = (1, 2, 3), R = 3, g₀ = 0")
 draw(axes[1], s4, c="k")
 axes[1].set_title("Fig. 4: unbalanced ball, c = (0, 0, 2.9), U = 0, g₀ = π")
 fig.tight_layout()
-plot.save(fig, "poincare_integrable.png", dpi=110)
+_ = plot.save(fig, "poincare_integrable.png", dpi=110)
 
 # %% [markdown]
 # ## Figs. 7 and 8: the unbalanced ball in gravity (`h = 50`, `g₀ = π`, `g = 9.8`)

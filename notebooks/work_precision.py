@@ -163,7 +163,7 @@ for col, (name, rs) in enumerate(rows.items()):
         ax.legend(fontsize=7)
 fig.suptitle(f"Work-precision, {N_PATHS} paths, $\\Delta t \\in$ {DTS}")
 fig.tight_layout()
-plot.save(fig, "work_precision.png")
+_ = plot.save(fig, "work_precision.png")
 
 # %% [markdown]
 # ## The cheapest adequate setting

@@ -3,10 +3,17 @@
 Each notebook runs as a script in a fresh interpreter (``sys.executable``), with
 ``NHSDE_NOTEBOOK_OUT`` pointing at a temporary directory and the Agg backend, and
 must exit cleanly and write its figures there as non-empty PNG files.
+
+The paired ``.ipynb`` (what the docs site renders, without executing it) must hold
+the same cell sources and be stored executed, with an inline PNG for each figure;
+these fast checks are those of the docs build (``docs/hooks.py``).
 """
 
 from __future__ import annotations
 
+import base64
+import importlib.util
+import json
 import os
 import subprocess
 import sys
@@ -76,3 +83,38 @@ def test_notebook_runs(notebook: Path, tmp_path: Path):
         data = path.read_bytes()
         assert len(data) > 1000, f"{name} is suspiciously small ({len(data)} bytes)"
         assert data.startswith(PNG_SIGNATURE), f"{name} is not a PNG file"
+
+
+def _docs_hooks():
+    """``docs/hooks.py``, loaded by path: the docs build and these tests share its notebook checks."""
+    path = NOTEBOOK_DIR.parent / "docs" / "hooks.py"
+    spec = importlib.util.spec_from_file_location("nhsde_docs_hooks", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_notebook_pairs_agree():
+    pytest.importorskip("jupytext")  # in the docs and dev extras, not in test
+    problems = _docs_hooks().notebook_pair_problems()
+    assert not problems, "\n".join(problems)
+
+
+def test_notebooks_stored_executed():
+    problems = _docs_hooks().notebook_output_problems()
+    assert not problems, "\n".join(problems)
+
+
+@pytest.mark.parametrize("notebook", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
+def test_notebook_stored_with_figures(notebook: Path):
+    cells = json.loads(notebook.with_suffix(".ipynb").read_text(encoding="utf-8"))["cells"]
+    outputs = [o for c in cells if c["cell_type"] == "code" for o in c.get("outputs", [])]
+    errors = [f"{o.get('ename')}: {o.get('evalue')}" for o in outputs if o["output_type"] == "error"]
+    assert not errors, f"{notebook.stem}.ipynb is stored with errors: {errors}"
+    images = [o["data"]["image/png"] for o in outputs if "image/png" in o.get("data", {})]
+    expected = len(EXPECTED_PNGS.get(notebook.name, ())) or 1
+    assert len(images) >= expected, f"{notebook.stem}.ipynb holds {len(images)} inline PNGs, expected {expected}"
+    for image in images:
+        data = base64.b64decode("".join(image) if isinstance(image, list) else image)
+        assert data.startswith(PNG_SIGNATURE) and len(data) > 1000, f"{notebook.stem}.ipynb: a bad inline PNG"
