@@ -5,9 +5,13 @@ Run from the repository root::
     python benchmarks/throughput.py                 # 4096 paths x 1000 steps, 5 repeats
     python benchmarks/throughput.py --quick         # small sizes, a smoke test
     python benchmarks/throughput.py --paths 8192 --steps 500 --repeats 3
+    python benchmarks/throughput.py --device gpu    # on the GPU (pip install -e ".[gpu]"); fails clearly without one
+    python benchmarks/throughput.py --device cpu    # on the CPU even where a GPU is present
 
 Everything is measured in one process, float32, dt = 0.01, on the same SDE for
-every implementation, for three scenes:
+every implementation, on the backend ``--device`` names (default: the one JAX
+picks, a GPU where there is one; the NumPy competitor always runs on the host),
+for three scenes:
 
 - ``ball``:   nhsde.scenes.BallOnVibratingPlane (linear, state (x, y, u_x, u_y));
 - ``sleigh``: nhsde.scenes.ChaplyginSleigh      (nonlinear, state (x, y, θ, v, ω));
@@ -542,6 +546,28 @@ def fmt_rate(x):
     return f"{x:.3g}" if x < 1e3 else f"{x:,.0f}"
 
 
+def select_device(device: str | None) -> str:
+    """Make ``device`` (``"cpu"``, ``"gpu"`` or ``None``: JAX's choice) the backend every JAX competitor runs on;
+    returns the backend's name.  Must run before anything else uses JAX.  Without a GPU, ``"gpu"`` exits (status 1)
+    saying so."""
+    if device == "cpu":
+        jax.config.update("jax_platforms", "cpu")  # before the backends start: a GPU, if any, stays unused
+    elif device == "gpu":
+        try:
+            gpus = jax.devices("gpu")
+        except RuntimeError as e:
+            sys.exit(
+                f"--device gpu: JAX finds no GPU here ({e}). Run on a machine with an NVIDIA GPU and its driver, "
+                'with the CUDA build of jaxlib: pip install -e ".[gpu]" (jax[cuda12]).'
+            )
+        jax.config.update("jax_default_device", gpus[0])
+        if jax.default_backend() != "gpu":
+            sys.exit(f"--device gpu: JAX's default backend is {jax.default_backend()!r}, not the GPU {gpus[0]}.")
+    elif device is not None:
+        raise ValueError(f"device={device!r}; expected 'cpu', 'gpu' or None.")
+    return jax.default_backend()
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--paths", type=int, default=4096, help="paths for nhsde, (a), (b) (default 4096)")
@@ -551,7 +577,13 @@ def main(argv=None):
     p.add_argument("--scenes", default="ball,sleigh,chaplygin-ball", help="comma-separated: ball,sleigh,chaplygin-ball")
     p.add_argument("--quick", action="store_true", help="smoke test: 512 paths, 200 steps, 2 repeats, 64 (c) paths")
     p.add_argument("--json", default=str(Path(__file__).resolve().parent / "results" / "throughput.json"))
+    p.add_argument(
+        "--device",
+        choices=("cpu", "gpu"),
+        help="the JAX backend: cpu, or gpu (fails clearly without one); default JAX's choice",
+    )
     args = p.parse_args(argv)
+    backend = select_device(args.device)
     if args.quick:
         args.paths, args.steps, args.repeats, args.c_paths = 512, 200, 2, 64
     if args.paths % 64:
@@ -562,6 +594,9 @@ def main(argv=None):
             p.error(f"unknown scene {s!r}; choose from {', '.join(SCENES)}")
 
     info = machine_info()
+    info["backend"] = backend
+    if len(jax.devices()) > 1:
+        print(f"note: nhsde shards over all {len(jax.devices())} devices, the other competitors use one")
     print("machine:")
     for k, v in info.items():
         print(f"  {k}: {v}")
@@ -688,6 +723,7 @@ def main(argv=None):
             "repeats": args.repeats,
             "c_paths": args.c_paths,
             "quick": args.quick,
+            "device": args.device or backend,
         },
         "rows": all_rows,
         "sanity": sanity,

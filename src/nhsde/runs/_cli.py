@@ -21,6 +21,8 @@ from typing import cast
 
 import numpy as np
 
+from ._distributed import add_flags, processes
+
 __all__ = ["build_parser", "main"]
 
 RUN_EXAMPLE = """\
@@ -55,6 +57,12 @@ a run file (TOML; every key is checked, unknown keys are errors):
   save_points = 11
   keep_paths = false                  # true stores every path (needed to fit with full covariances)
 
+  [accuracy]                          # optional: instead, one statistic at t1 to a requested accuracy
+  rmse = 0.001                        # or relative_rmse = 0.01 (of the pilot's value); paths.n is unused
+  statistic = "cov x x"               # or "mean x"; default: the variance of the drift coordinate
+  solver = "any"                      # any, euler or weak2 (Gaussian increments); solver.dt: the coarsest step
+  max_path_steps = 1e11               # refuse a predicted work above this
+
 Run it again after an interruption to resume; the result is the same as an uninterrupted run.
 """
 
@@ -79,6 +87,11 @@ _FLAGS = {
     "solver.name": "--solver",
     "statistics.save_points": "--save-points",
     "seed": "--seed",
+    "accuracy.rmse": "--rmse",
+    "accuracy.relative_rmse": "--relative-rmse",
+    "accuracy.statistic": "--statistic",
+    "accuracy.solver": "--solver",
+    "accuracy.max_path_steps": "--max-path-steps",
 }
 _FLAG_KEYS = re.compile(r"(?<![\w.])(" + "|".join(map(re.escape, _FLAGS)) + r"|parameters\.(\w+))( = )?")
 
@@ -203,8 +216,108 @@ def _scene_config(args):
         raise ConfigError(_as_flags(str(e)), e.key) from None
 
 
+def _accuracy_given(args) -> bool:
+    return args.rmse is not None or args.relative_rmse is not None
+
+
+def _run_accuracy(config, built) -> int:
+    """``[accuracy]`` of a run (or ``--rmse``): one statistic at ``t1`` by :func:`~nhsde.statistics.to_accuracy`."""
+    from .._ensemble import Save
+    from .._weak import PlatenWeak2
+    from ..scenes import ball_covariances
+    from ..statistics import to_accuracy
+    from ._config import default_statistic, parse_statistic
+
+    d, a, s = config.data, config.data["accuracy"], config.data["solver"]
+    statistic = (
+        default_statistic(built.system, built.names) if a["statistic"] is None else parse_statistic(a["statistic"])
+    )
+    solver = {"any": None, "weak2": PlatenWeak2(increments="gaussian")}.get(a["solver"], a["solver"])
+    target = f"rmse {a['rmse']:g}" if a["rmse"] is not None else f"relative rmse {a['relative_rmse']:g}"
+    label = f"m[{statistic[1]}]" if statistic[0] == "mean" else f"K[{statistic[1]},{statistic[2]}]"
+    params = config.parameters()
+    print(f"scene {d['scene']}: " + ", ".join(f"{k}={v:g}" for k, v in params.items()))
+    print(
+        f"{label} at t = {s['t1']:g} to {target}: pilots from the coarsest step dt = {s['dt']:g}, "
+        f"seed {d['seed']}, {d['precision']}",
+        flush=True,
+    )
+    result = to_accuracy(
+        built.system,
+        built.y0,
+        built.key,
+        t0=s["t0"],
+        t1=s["t1"],
+        dt=s["dt"],
+        statistic=statistic,
+        rmse=a["rmse"],
+        relative_rmse=a["relative_rmse"],
+        solver=solver,
+        save=Save(names=built.names, n=2),
+        max_path_steps=a["max_path_steps"],
+    )
+    print(result.report())
+    print(
+        f"\n{label} = {_fmt(result.value, result.standard_error)}  (mean ± standard error; bias estimate "
+        f"{result.bias:.2g}; target rmse {result.rmse:.3g}, estimated {result.estimated_rmse:.3g})"
+    )
+    print(
+        f"work: {result.work:.4g} path-steps ({result.pilot_work:.4g} in pilots), {result.seconds:.1f} s; "
+        f"by {result.choice}"
+    )
+    if d["scene"] == "ball-on-vibrating-plane" and statistic[0] == "cov":
+        p = built.system.params
+        kxx, kxu, kuu = ball_covariances(np.float64(s["t1"]), p.eps, p.nu, p.delta)
+        print(f"closed form (S0 (3.1)): k_xx={float(kxx):.6g}  k_xu={float(kxu):.6g}  k_uu={float(kuu):.6g}")
+    return 0
+
+
+def _cmd_accuracy_scene(args) -> int:
+    """``nhsde simulate SCENE --rmse R`` (or ``--relative-rmse``): one statistic to that accuracy."""
+    import math
+
+    import jax
+
+    from ..scenes import get_scene
+    from ._config import ConfigError, RunConfig
+
+    for name in ("paths", "save_points", "out"):
+        if getattr(args, name) is not None:
+            flag = "--" + name.replace("_", "-")
+            raise ConfigError(
+                f"{flag} cannot be combined with --rmse/--relative-rmse: the estimator chooses the paths."
+            )
+    jax.config.update("jax_enable_x64", True)
+    get_scene(args.scene)  # a ValueError names the known scenes
+    t1 = _SCENE_DEFAULTS["t1"] if args.t1 is None else args.t1
+    dt = args.dt if args.dt is not None else t1 / math.ceil(t1 / 0.25) if t1 > 0 else 0.25
+    accuracy = {
+        "rmse": args.rmse,
+        "relative_rmse": args.relative_rmse,
+        "statistic": args.statistic,
+        "solver": args.solver or "any",
+        "max_path_steps": args.max_path_steps,
+    }
+    raw = {
+        "scene": args.scene,
+        "seed": _SCENE_DEFAULTS["seed"] if args.seed is None else args.seed,
+        "precision": "float64" if args.x64 else "float32",
+        "parameters": _parse_set(args.set),
+        "solver": {"dt": dt, "t1": t1},
+        "statistics": {"save_points": 2},
+        "accuracy": {k: v for k, v in accuracy.items() if v is not None},
+    }
+    try:
+        config = RunConfig.from_dict(raw)
+    except ConfigError as e:
+        raise ConfigError(_as_flags(str(e)), e.key) from None
+    return _run_accuracy(config, config.build())
+
+
 def _cmd_simulate_scene(args) -> int:
     """Simulate a scene, print its statistics at ``t1`` with their ``eps``/``nu`` derivatives, save with ``--out``."""
+    if _accuracy_given(args):
+        return _cmd_accuracy_scene(args)
     import jax
     import jax.numpy as jnp
 
@@ -318,7 +431,15 @@ def _cmd_simulate_config(args) -> int:
     given += ["SCENE"] if args.scene is not None else []
     if given:
         raise ConfigError(f"{', '.join(given)} cannot be combined with --config; set them in the file.")
+    if _accuracy_given(args) or args.statistic is not None or args.max_path_steps is not None:
+        raise ConfigError(
+            "--rmse, --relative-rmse, --statistic, --max-path-steps cannot be combined with --config; use [accuracy]."
+        )
     config = _load(args, "simulate")
+    if "accuracy" in config.data:
+        if args.out:
+            raise ConfigError("--out: a run file with [accuracy] prints its estimate and writes no netCDF file.")
+        return _run_accuracy(config, config.build())
     out = Path(args.out) if args.out else Path(args.config).with_suffix(".nc")
     n, chunk = config.data["paths"]["n"], config.data["paths"]["chunk"]
 
@@ -352,6 +473,10 @@ def _cmd_simulate(args) -> int:
         return _cmd_simulate_config(args)
     if args.scene is None:
         raise ConfigError("give a SCENE (see `nhsde scenes`) or --config FILE.")
+    if not _accuracy_given(args):
+        for flag, value in (("--statistic", args.statistic), ("--max-path-steps", args.max_path_steps)):
+            if value is not None:
+                raise ConfigError(f"{flag} needs --rmse or --relative-rmse.")
     return _cmd_simulate_scene(args)
 
 
@@ -396,6 +521,18 @@ def build_parser() -> argparse.ArgumentParser:
         action=argparse.BooleanOptionalAction,
         help="a progress bar (default: when stderr is a terminal)",
     )
+    sim.add_argument(
+        "--rmse",
+        type=float,
+        help="estimate one statistic at t1 to this root-mean-square error by the cheapest estimator a pilot "
+        "predicts (plain, extrapolated, multilevel, antithetic, control variate); --dt is the coarsest step",
+    )
+    sim.add_argument("--relative-rmse", type=float, help="as --rmse, relative to the pilot's |value|")
+    sim.add_argument(
+        "--statistic",
+        help="with --rmse: 'cov NAME NAME' or 'mean NAME' at t1 (default the variance of the drift coordinate)",
+    )
+    sim.add_argument("--max-path-steps", type=float, help="with --rmse: refuse a predicted work above this")
     fit = sub.add_parser(
         "fit",
         help="fit parameters to a run file through simulation (--config FILE)",
@@ -404,6 +541,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     fit.add_argument("--config", required=True, help="a TOML fit file")
     fit.add_argument("--out", help="netCDF file for the estimates (default the config's name with .nc)")
+    for p in (sim, fit):
+        add_flags(p)  # --coordinator, --num-processes, --process-id: several processes, process 0 writes
     return parser
 
 
@@ -419,7 +558,8 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     command = {"scenes": _cmd_scenes, "simulate": _cmd_simulate, "fit": _cmd_fit}[args.command]
     try:
-        return command(args)
+        with processes(args):  # jax.distributed from the flags or NHSDE_* variables; none: one process
+            return command(args)
     except ValueError as e:  # ConfigError, and what simulate refuses
         message, status = str(e), 2
     except (SimulationError, FloatingPointError, OSError) as e:

@@ -28,7 +28,16 @@ from .._solvers import SOLVERS, solver_needs
 from .._system import StochasticSystem
 from ..scenes import SCENES, AbstractScene, get_scene
 
-__all__ = ["Built", "ConfigError", "RunConfig", "load_config", "x64_enabled"]
+__all__ = [
+    "ACCURACY_SOLVERS",
+    "Built",
+    "ConfigError",
+    "RunConfig",
+    "default_statistic",
+    "load_config",
+    "parse_statistic",
+    "x64_enabled",
+]
 
 
 def x64_enabled() -> bool:
@@ -63,8 +72,13 @@ class _Field:
     multiple_of: int | None = None  # for "int"
 
 
-def _schema(kind: str) -> dict:
-    """The allowed keys; ``"scene-…"`` tables depend on the scene."""
+ACCURACY_SOLVERS = ("any", "euler", "weak2")
+"""``accuracy.solver``: the solvers :func:`~nhsde.statistics.to_accuracy` compares (``weak2``: Gaussian increments)."""
+
+
+def _schema(kind: str, accuracy: bool = False) -> dict:
+    """The allowed keys; ``"scene-…"`` tables depend on the scene.  With an ``[accuracy]`` table, ``paths.n`` is
+    not used (the estimator chooses the paths) and may be left out."""
     schema: dict[str, Any] = {
         "scene": _Field("str"),
         "seed": _Field("int", 0, minimum=0, maximum=_INT64 - 1),
@@ -83,6 +97,15 @@ def _schema(kind: str) -> dict:
         schema["solver"] |= {"t0": _Field("float", 0.0), "t1": _Field("float")}
         schema["paths"] |= {"chunk": _Field("int", 8192, minimum=BLOCK, maximum=MAX_PATH_INDEX + 1, multiple_of=BLOCK)}
         schema["statistics"] |= {"save_points": _Field("int", 11, minimum=2), "keep_paths": _Field("bool", False)}
+        schema["accuracy"] = {
+            "rmse": _Field("float", None, minimum=0, strict=True),
+            "relative_rmse": _Field("float", None, minimum=0, strict=True),
+            "statistic": _Field("str", None),
+            "solver": _Field("str", "any", allowed=ACCURACY_SOLVERS),
+            "max_path_steps": _Field("float", 1e11, minimum=0, strict=True),
+        }
+        if accuracy:
+            schema["paths"]["n"] = _Field("int", 4096, minimum=MIN_PATHS, maximum=MAX_PATH_INDEX)
     else:
         schema["fit"] = {
             "data": _Field("str"),
@@ -278,6 +301,45 @@ def _check_times_and_paths(data: dict):
         )
 
 
+def parse_statistic(text: str) -> tuple[str, ...]:
+    """``"cov x x"`` → ``('cov', 'x', 'x')``, ``"mean x"`` → ``('mean', 'x')``; a ``ValueError`` otherwise."""
+    parts = tuple(text.split())
+    if not ((len(parts) == 2 and parts[0] == "mean") or (len(parts) == 3 and parts[0] == "cov")):
+        raise ValueError(f"{text!r}: expected 'mean NAME' or 'cov NAME NAME'")
+    return parts
+
+
+def default_statistic(system: StochasticSystem, names: tuple[str, ...]) -> tuple[str, ...]:
+    """The variance of the first saved dependent coordinate (the drift), else of the first saved name."""
+    layout = system.layout
+    drift = [n for n in names if n in layout.names and layout.roles[layout.index(n)] == "dependent_coordinate"]
+    first = (drift or list(names))[0]
+    return ("cov", first, first)
+
+
+def _check_accuracy(data: dict, system: StochasticSystem):
+    """``[accuracy]``: exactly one target, a statistic of saved names."""
+    a = data["accuracy"]
+    if (a["rmse"] is None) == (a["relative_rmse"] is None):
+        raise ConfigError("accuracy: give exactly one of accuracy.rmse and accuracy.relative_rmse.", "accuracy.rmse")
+    save = data["statistics"]["save"]
+    names = tuple(system.layout.names if save is None else save)
+    if a["statistic"] is not None:
+        try:
+            statistic = parse_statistic(a["statistic"])
+        except ValueError as e:
+            raise ConfigError(f"accuracy.statistic = {e}.", "accuracy.statistic") from None
+        missing = [n for n in statistic[1:] if n not in names]
+        if missing:
+            raise ConfigError(
+                f"accuracy.statistic = {a['statistic']!r}: {', '.join(missing)} not saved; saved: {', '.join(names)}.",
+                "accuracy.statistic",
+            )
+    s = data["solver"]
+    if s["t1"] - s["t0"] < s["dt"] * (1 - 1e-12):
+        raise ConfigError(f"solver.dt = {s['dt']}: the coarsest step must not exceed t1 − t0.", "solver.dt")
+
+
 class Built(NamedTuple):
     """What a run simulates: the scene, its system, the initial state, the key, the saved names and their roles."""
 
@@ -314,10 +376,15 @@ class RunConfig:
         if kind not in ("simulate", "fit"):
             raise ValueError(f"kind={kind!r}; allowed: 'simulate', 'fit'.")
         data: dict = {}
-        _table("", _schema(kind), raw, data)
+        accuracy = isinstance(raw, dict) and "accuracy" in raw
+        _table("", _schema(kind, accuracy), raw, data)
+        if kind == "simulate" and not accuracy:
+            del data["accuracy"]  # absent: the plain run, its canonical data unchanged
         scene, system = _check_scene(data)
         if kind == "simulate":
             _check_times_and_paths(data)
+            if accuracy:
+                _check_accuracy(data, system)
         return cls(kind, data, Path(base), scene, system, x64_enabled())
 
     def parameters(self) -> dict[str, float]:

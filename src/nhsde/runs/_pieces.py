@@ -4,6 +4,11 @@ Piece ``k`` is paths ``k·chunk …`` of the ensemble the seed defines
 (``simulate(first_path=k·chunk)``); ``simulate`` reduces it to moment sums
 about the first piece's shift (``Save(about=shift)``), which are kept in
 float64 and added in piece order.  The scene is built once per run.
+
+Over several processes (``jax.distributed``, see :mod:`~nhsde.runs._distributed`)
+every process runs this same loop: each piece is simulated over the devices of
+all processes, every process resumes from the same file (on a disk all see),
+and only process 0 writes it.
 """
 
 from __future__ import annotations
@@ -49,6 +54,17 @@ def run(
     checked, with the pieces already done; ``on_piece(k)`` after piece ``k`` is
     safely written (an exception there interrupts the run as a kill would);
     ``progress_meter`` is passed to :func:`~nhsde.simulate` for every piece.
+
+    Launched in several processes after :func:`jax.distributed.initialize`
+    (or :func:`~nhsde.runs.main`'s ``--coordinator``, ``--num-processes``,
+    ``--process-id``), every process calls ``run`` with the same configuration
+    and ``out``: each piece is computed over all processes' devices, only process
+    0 touches ``out`` and its lock, the others read it to resume alike, and
+    every process returns the same statistics.  A process seeing another
+    configuration, other code or another file, and an error in any process, is
+    refused in all (:class:`ConfigError`); ``on_start`` and ``on_piece`` run in
+    every process and must act alike in all (one that raises in some
+    processes only leaves the others waiting).
     """
     if config.kind != "simulate":
         raise ValueError(f"run: this is a {config.kind!r} configuration; use run_fit.")

@@ -20,6 +20,11 @@ replaced, never followed), synced and renamed to ``PATH``; the writer holds
 path is checked before any work; a file there that cannot be read, fails its
 checksum, is of another kind or configuration, or has impossible counts, is
 refused with its name, never merged.
+
+Over several processes (``jax.distributed``) only process 0 checks, locks and
+writes the output; the others read the file there to resume alike, and the
+processes agree on the configuration, code, file and numbers
+(:mod:`~nhsde.runs._distributed`).
 """
 
 from __future__ import annotations
@@ -44,6 +49,7 @@ import xarray as xr
 
 from .._ensemble import Ensemble, MomentSums
 from ._config import Built, ConfigError, RunConfig
+from ._distributed import agree, digest, is_writer, several, to_host
 
 __all__ = [
     "FIT_FORMAT",
@@ -52,6 +58,7 @@ __all__ = [
     "Pieces",
     "checksum",
     "claim",
+    "data_digest",
     "dataset",
     "git_revision",
     "load_run",
@@ -119,15 +126,16 @@ def provenance() -> dict:
 
 
 def _float64(sums: MomentSums) -> MomentSums:
-    """``sums`` in float64 (exact from float32), the count in int64."""
-    f64 = functools.partial(jnp.asarray, dtype=jnp.float64)
+    """``sums`` in float64 (exact from float32), the count in int64, on this process's default device (through the
+    host: over several processes ``simulate``'s results span the devices of all, a resumed file's only this one's)."""
+    f64 = lambda a: jnp.asarray(to_host(a), dtype=jnp.float64)
     return MomentSums(
         shift=f64(sums.shift),
         s1=f64(sums.s1),
         s2=f64(sums.s2),
         s3=f64(sums.s3),
         s4=f64(sums.s4),
-        count=jnp.asarray(sums.count, jnp.int64),
+        count=jnp.asarray(to_host(sums.count), jnp.int64),
     )
 
 
@@ -147,11 +155,11 @@ class Pieces:
 
     def add(self, ens: Ensemble, keep_paths: bool):
         self.sums.append(_float64(ens.sums))
-        self.n_failed.append(int(ens.n_failed))
+        self.n_failed.append(int(to_host(ens.n_failed)))
         if keep_paths:
             assert ens.paths is not None
-            self.paths.append(np.asarray(ens.paths))
-            self.failed.append(np.asarray(ens.failed))
+            self.paths.append(to_host(ens.paths))
+            self.failed.append(to_host(ens.failed))
 
     def total(self) -> MomentSums:
         """The sums of all pieces, added in piece order (so bitwise alike however often the run resumed)."""
@@ -242,8 +250,30 @@ def write(ds: xr.Dataset, path: Path):
 
     It goes to ``PATH.partial`` first (created afresh: a link there is replaced,
     never followed), is synced, then renamed; after a failure (a full disk)
-    ``path`` still holds what it held, and the OSError names it.
+    ``path`` still holds what it held, and the OSError names it.  Over several
+    processes only process 0 writes; then the processes agree (a collective, so
+    every process calls ``write`` alike): a failed write raises in all, as do
+    numbers that differ between processes.
     """
+    if not several():
+        _write_here(ds, path)
+        return
+    error = None
+    if is_writer():
+        try:
+            _write_here(ds, path)
+        except OSError as e:
+            error = e
+    agree({"data": data_digest(ds)}, error)
+
+
+def data_digest(ds: xr.Dataset) -> str:
+    """SHA-256 of ``ds``' data variables: name, dtype, shape and bytes of each (NaNs alike)."""
+    return checksum(xr.Dataset({k: ds[k] for k in ds.data_vars}))
+
+
+def _write_here(ds: xr.Dataset, path: Path):
+    """:func:`write` in the process that writes."""
     tmp = path.with_name(path.name + ".partial")
     try:
         tmp.unlink(missing_ok=True)
@@ -315,7 +345,40 @@ def claim(path: Path, config: RunConfig, fmt: str = FORMAT) -> Iterator[xr.Datas
     Refused with :class:`ConfigError` naming the path: a directory, a missing
     or unwritable directory, a link or other non-file, a file that is damaged or
     not ``fmt`` of ``config``, and a path another process is writing.
+
+    Over several processes (``jax.distributed``) only process 0 checks the path
+    and holds the lock; the others only read the file there (they never create,
+    lock or write anything).  Then the processes agree: an error in any of them,
+    or a different configuration, code or file in any, is raised in all
+    (:func:`~nhsde.runs._distributed.agree`).
     """
+    if not several():
+        with _claim_here(path, config, fmt) as found:
+            yield found
+        return
+    with contextlib.ExitStack() as stack:
+        found, error = None, None
+        try:
+            if is_writer():
+                found = stack.enter_context(_claim_here(path, config, fmt))
+            else:
+                found = _existing(path, config, fmt)
+        except (ConfigError, OSError) as e:
+            error = e
+        agree(
+            {
+                "config": digest(fmt, config.to_json()),
+                "code": digest(json.dumps(versions(), sort_keys=True), source_hash()),
+                "file": "none" if found is None else str(found.attrs.get("checksum")),
+            },
+            error,
+        )
+        yield found
+
+
+@contextlib.contextmanager
+def _claim_here(path: Path, config: RunConfig, fmt: str) -> Iterator[xr.Dataset | None]:
+    """:func:`claim` in the process that writes."""
     _check_target(path)
     lock = path.with_name(path.name + ".lock")
     try:

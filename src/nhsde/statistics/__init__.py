@@ -9,12 +9,14 @@
 - Statistics at a requested accuracy for less work: :func:`extrapolate`
   (Richardson–Romberg / Talay–Tubaro), :func:`multilevel_monte_carlo` (Giles),
   :func:`antithetic` paths, :func:`control_variate` (the linearised system
-  driven by the same increments).
+  driven by the same increments); :func:`to_accuracy` chooses among them from a
+  pilot run for a requested RMSE.
 - Derivatives of simulated moments with their standard errors: :func:`moment_sensitivities`.
 - The Fokker–Planck equation on a grid (1 and 2 components):
   :func:`stationary_fokker_planck`, :func:`fokker_planck`.
 """
 
+from ._accuracy import AccuracyResult as AccuracyResult, to_accuracy as to_accuracy
 from ._control_variate import (
     ControlVariateEstimate as ControlVariateEstimate,
     PerEntry as PerEntry,

@@ -1,0 +1,144 @@
+"""One call to a requested accuracy: ``to_accuracy`` picks the cheapest estimator a pilot predicts; ``--rmse``.
+
+Exact values are the ball's closed forms, S0 (3.1); tolerances come from the
+requested RMSE and a stated confidence (χ² bound on the realised mean-square error).
+"""
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.stats
+
+import nhsde
+from nhsde.noise import CompoundPoisson, NormalJumps
+from nhsde.runs import ConfigError, RunConfig, main
+from nhsde.scenes import BallOnVibratingPlane, ball_covariances
+from nhsde.statistics import to_accuracy
+
+DELTA = 1 / 1.4
+BALL = BallOnVibratingPlane(eps=1.0, nu=1.0)
+Y0 = jnp.zeros(4)
+K_XX = float(ball_covariances(jnp.float64(1.0), 1.0, 1.0, DELTA)[0])
+# Euler on plain paths only, so that the few compiled programs are shared by every test here (the CLI's pilot
+# included); the control variate is exact on the linear ball and would make the accuracy test trivial.
+FAST = dict(t1=1.0, statistic=("cov", "x", "x"), solver="euler", antithetic=False, control_variate=False)
+
+
+def test_reaches_the_requested_rmse_on_the_ball():
+    """Realised RMSE of K_xx(1) over 4 runs ≤ ε √(χ²_{4, 0.99}/4) (99 % if each run's MSE ≤ ε²); the report
+    lists plain, extrapolated and multilevel Monte Carlo, each with a finite cost."""
+    eps = 0.08 * K_XX
+    runs = [to_accuracy(BALL.build(), Y0, jax.random.key(10 + r), rmse=eps, **FAST) for r in range(4)]
+    errors = np.array([r.value - K_XX for r in runs])
+    bound = math.sqrt(scipy.stats.chi2.ppf(0.99, len(runs)) / len(runs))
+    assert np.sqrt(np.mean(errors**2)) <= bound * eps, (errors / eps, [r.choice for r in runs])
+    r = runs[0]
+    names = {a.name for a in r.alternatives}
+    assert names == {"plain MC, euler", "extrapolation, euler", "multilevel, euler"}
+    assert all(math.isfinite(a.cost) and a.cost > 0 for a in r.alternatives)
+    chosen = next(a for a in r.alternatives if a.name == r.choice)
+    assert chosen.cost == min(a.cost for a in r.alternatives)
+    assert r.work > r.pilot_work > 0 and r.estimated_rmse <= 1.5 * eps
+    text = str(r)
+    assert "chosen: " + r.choice in text and "multilevel, euler" in text
+
+
+def test_relative_rmse_and_the_budget_guard():
+    system = BALL.build()
+    r = to_accuracy(system, Y0, jax.random.key(1), relative_rmse=0.1, **FAST)
+    assert r.rmse == pytest.approx(0.1 * abs(r.pilot[0].values[-1]))
+    with pytest.raises(ValueError, match="max_path_steps="):
+        to_accuracy(system, Y0, jax.random.key(1), rmse=1e-4, max_path_steps=1e6, **FAST)
+    with pytest.raises(ValueError, match="relative_rmse="):  # the mean of x is 0 from rest
+        to_accuracy(system, Y0, jax.random.key(1), relative_rmse=0.1, **(FAST | dict(statistic=("mean", "x"))))
+
+
+def test_bad_input_raises_naming_the_argument():
+    system, key = BALL.build(), jax.random.key(0)
+    base = dict(t1=1.0, statistic=("cov", "x", "x"))
+    for rmse in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="rmse="):
+            to_accuracy(system, Y0, key, rmse=rmse, **base)
+        with pytest.raises(ValueError, match="relative_rmse="):
+            to_accuracy(system, Y0, key, relative_rmse=rmse, **base)
+    with pytest.raises(TypeError, match="exactly one"):
+        to_accuracy(system, Y0, key, rmse=0.1, relative_rmse=0.1, **base)
+    with pytest.raises(TypeError, match="exactly one"):
+        to_accuracy(system, Y0, key, **base)
+    for statistic in (("cov", "x", "q"), ("var", "x"), ("mean", "x", "x"), "cov x x"):
+        with pytest.raises(ValueError, match="statistic="):
+            to_accuracy(system, Y0, key, rmse=0.1, t1=1.0, statistic=statistic)
+    with pytest.raises(ValueError, match="statistic="):  # a name the save does not keep
+        to_accuracy(system, Y0, key, rmse=0.1, save=nhsde.Save(names=("u_x",)), **base)
+    with pytest.raises(ValueError, match="steps="):
+        to_accuracy(system, Y0, key, rmse=0.1, steps=nhsde.AdaptiveSteps(0.25), **base)
+    with pytest.raises(ValueError, match="dt="):
+        to_accuracy(system, Y0, key, rmse=0.1, dt=0.3, **base)
+    with pytest.raises(ValueError, match="solver="):  # three-point increments cannot be coupled
+        to_accuracy(system, Y0, key, rmse=0.1, solver="weak2", **base)
+    jumps = dataclasses.replace(system, noise=CompoundPoisson(law=NormalJumps(), intensity=1.0))
+    with pytest.raises(ValueError, match="solver="):
+        to_accuracy(jumps, Y0, key, rmse=0.1, solver=nhsde.PlatenWeak2(increments="gaussian"), **base)
+    with pytest.raises(ValueError, match="antithetic=True"):
+        to_accuracy(jumps, Y0, key, rmse=0.1, antithetic=True, **base)
+
+
+def test_run_file_accuracy_table_is_checked():
+    raw = dict(scene="ball-on-vibrating-plane", solver=dict(dt=0.25, t1=1.0), statistics=dict(save_points=2))
+    config = RunConfig.from_dict(raw | dict(accuracy=dict(rmse=0.01)))
+    assert config.data["accuracy"]["statistic"] is None and config.data["paths"]["n"] == 4096
+    assert "accuracy" not in RunConfig.from_dict(raw | dict(paths=dict(n=64))).data  # plain runs unchanged
+    for accuracy, key in [
+        (dict(rmse=0.01, relative_rmse=0.1), "accuracy.rmse"),
+        (dict(), "accuracy.rmse"),
+        (dict(rmse=-1.0), "accuracy.rmse"),
+        (dict(rmse=0.01, statistic="cov x q"), "accuracy.statistic"),
+        (dict(rmse=0.01, statistic="var x"), "accuracy.statistic"),
+        (dict(rmse=0.01, solver="rk4"), "accuracy.solver"),
+    ]:
+        with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+            RunConfig.from_dict(raw | dict(accuracy=accuracy))
+
+
+def test_cli_rmse_prints_the_choice_and_value(capsys, tmp_path):
+    argv = ["simulate", "ball-on-vibrating-plane", "--t1", "1", "--x64", "--solver", "euler"]
+    assert main(argv + ["--rmse", "0.004"]) == 0
+    out = capsys.readouterr().out
+    assert "K[x,x] = " in out and "±" in out and "chosen: " in out and "path-steps" in out, out
+    for method in ("plain MC", "extrapolation", "multilevel"):  # each also with antithetic pairs
+        assert f"{method}, euler, antithetic " in out, out
+    assert "control variate, euler" in out, out
+    value = float(out.split("K[x,x] = ")[1].split("±")[0])
+    assert abs(value - K_XX) < 5 * 0.004  # 5 target RMSEs: Chebyshev, ≥ 96 %
+    run = tmp_path / "run.toml"
+    run.write_text(
+        'scene = "ball-on-vibrating-plane"\n[solver]\ndt = 0.25\nt1 = 1.0\n[statistics]\nsave_points = 2\n'
+        '[accuracy]\nrmse = 0.004\nsolver = "euler"\n'
+    )
+    assert main(["simulate", "--config", str(run)]) == 0
+    assert "K[x,x] = " in capsys.readouterr().out
+    for extra, match in [
+        (["--rmse", "0"], "--rmse 0"),
+        (["--rmse", "0.01", "--relative-rmse", "0.1"], "exactly one"),
+        (["--rmse", "0.01", "--statistic", "cov x q"], "--statistic"),
+        (["--rmse", "0.01", "--paths", "100"], "--paths cannot be combined"),
+        (["--statistic", "cov x x"], "--statistic needs --rmse"),
+    ]:
+        assert main(argv + extra) == 2, extra
+        err = capsys.readouterr().err
+        assert match in err, err
+
+
+@pytest.mark.slow
+def test_every_alternative_on_the_ball():
+    """The default set: Euler and weak2 (Gaussian), plain, extrapolated, multilevel, antithetic, and the control
+    variate, which is exact on the linear ball; the estimate is within 3 target RMSEs (Chebyshev: ≥ 89 %)."""
+    eps = 0.05 * K_XX
+    r = to_accuracy(BALL.build(), Y0, jax.random.key(3), t1=1.0, statistic=("cov", "x", "x"), rmse=eps)
+    assert len(r.alternatives) == 13 and all(math.isfinite(a.cost) for a in r.alternatives), r.report()
+    assert {p.solver for p in r.pilot} == {"euler", "weak2-gaussian"}
+    assert r.choice == "control variate, euler" and abs(r.value - K_XX) <= 3 * eps
