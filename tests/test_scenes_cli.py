@@ -120,6 +120,8 @@ def test_cli_simulate_prints_and_saves(tmp_path, capsys):
     assert data["cov"].shape == (11, 4, 4) and data["d_cov_d_nu"].shape == (11, 4, 4)
     # K is linear in ν: ∂K/∂ν = K/ν
     np.testing.assert_allclose(data["d_cov_d_nu"][-1], data["cov"][-1] / 1.0, rtol=1e-4, atol=1e-7)
+    # and so is its standard error (paths ∝ √ν from rest: the per-path influence terms are those of K, over ν)
+    np.testing.assert_allclose(data["d_cov_d_nu_se"][-1], data["cov_se"][-1] / 1.0, rtol=0.05)
 
 
 def test_cli_rejects_bad_input(capsys):

@@ -314,6 +314,21 @@ def _cmd_accuracy_scene(args) -> int:
     return _run_accuracy(config, config.build())
 
 
+_PARAMS = ("eps", "nu")
+_SENSITIVITY_BYTES = 4 * 2**30
+
+
+def _check_sensitivity_memory(args, state_dim: int, n_params: int):
+    """The pathwise derivatives keep every path's saved values and tangents: refuse what would not fit."""
+    need = 8 * args.paths * args.save_points * state_dim * (1 + n_params)
+    if need > _SENSITIVITY_BYTES:
+        raise ValueError(
+            f"--paths {args.paths} with --save-points {args.save_points}: the derivatives' per-path tangents need "
+            f"{need / 2**30:.1f} GiB (at most {_SENSITIVITY_BYTES / 2**30:.0f} GiB); use fewer save points or paths, "
+            "or a run file (nhsde simulate run.toml), which stores statistics without derivatives."
+        )
+
+
 def _cmd_simulate_scene(args) -> int:
     """Simulate a scene, print its statistics at ``t1`` with their ``eps``/``nu`` derivatives, save with ``--out``."""
     if _accuracy_given(args):
@@ -323,7 +338,6 @@ def _cmd_simulate_scene(args) -> int:
 
     from .. import statistics
     from .._ensemble import Save
-    from .._simulate import simulate
     from ..scenes import ball_covariances
     from ._store import Pieces, claim, dataset, provenance, write
 
@@ -335,11 +349,18 @@ def _cmd_simulate_scene(args) -> int:
     built = config.build()
     d = config.data
 
-    def statistics_at(eps, nu):
-        ens = simulate(
-            built.system.replace_params(eps=eps, nu=nu),
+    p = built.system.params
+    # at ν = 0 paths scale like √ν: the ν-derivative does not exist and is reported as nan
+    wrt = ("eps", "nu") if float(p.nu) > 0 else ("eps",)
+    _check_sensitivity_memory(args, len(built.names), len(wrt))
+    out = Path(args.out) if args.out else None
+    with claim(out, config) if out else contextlib.nullcontext():
+        print(_plan(config, args.paths, derivatives=True), flush=True)
+        sens = statistics.moment_sensitivities(
+            built.system,
             built.y0,
             built.key,
+            wrt=wrt,
             n_paths=args.paths,
             t1=args.t1,
             dt=args.dt,
@@ -348,27 +369,22 @@ def _cmd_simulate_scene(args) -> int:
             on_failure="exclude",
             progress_meter=_progress_meter(args),
         )
-        return (ens.mean, ens.cov), ens
+        ens = sens.ensemble
 
-    p = built.system.params
-    # at ν = 0 paths scale like √ν: the ν-derivative does not exist and is reported as nan
-    argnums = (0, 1) if float(p.nu) > 0 else (0,)
-    out = Path(args.out) if args.out else None
-    with claim(out, config) if out else contextlib.nullcontext():
-        print(_plan(config, args.paths, derivatives=True), flush=True)
-        (d_mean, d_cov), ens = jax.jacfwd(statistics_at, argnums=argnums, has_aux=True)(p.eps, p.nu)
-        if len(argnums) == 1:
-            nan = jnp.full_like(d_mean[0], jnp.nan), jnp.full_like(d_cov[0], jnp.nan)
-            d_mean, d_cov = (d_mean[0], nan[0]), (d_cov[0], nan[1])
+        def by_parameter(field):  # (eps, nu), nan where not differentiated
+            values = getattr(sens, field)
+            return tuple(values[wrt.index(q)] if q in wrt else jnp.full_like(values[0], jnp.nan) for q in _PARAMS)
+
+        d_mean, d_cov, d_mean_se, d_cov_se = map(by_parameter, ("d_mean", "d_cov", "d_mean_se", "d_cov_se"))
         pieces = Pieces()
         pieces.add(ens, keep_paths=False)
         tn, tnn = ("time", "name"), ("time", "name", "name2")
-        derivatives = {
-            "d_mean_d_eps": (tn, np.asarray(d_mean[0]), {"long_name": "forward-mode derivative of mean in eps"}),
-            "d_mean_d_nu": (tn, np.asarray(d_mean[1]), {"long_name": "forward-mode derivative of mean in nu"}),
-            "d_cov_d_eps": (tnn, np.asarray(d_cov[0]), {"long_name": "forward-mode derivative of cov in eps"}),
-            "d_cov_d_nu": (tnn, np.asarray(d_cov[1]), {"long_name": "forward-mode derivative of cov in nu"}),
-        }
+        derivatives = {}
+        for a, q in enumerate(_PARAMS):
+            for stat, dims, value, se in (("mean", tn, d_mean, d_mean_se), ("cov", tnn, d_cov, d_cov_se)):
+                long_name = f"pathwise (forward-mode) derivative of {stat} in {q}"
+                derivatives[f"d_{stat}_d_{q}"] = (dims, np.asarray(value[a]), {"long_name": long_name})
+                derivatives[f"d_{stat}_d_{q}_se"] = (dims, np.asarray(se[a]), {"long_name": "its standard error"})
         ds = dataset(config, built, pieces, provenance(), extra=derivatives)
         if out:
             write(ds, out)
@@ -381,23 +397,23 @@ def _cmd_simulate_scene(args) -> int:
     )
     names, roles, last = built.names, built.roles, -1
     print(
-        f"\nat t = {float(ds['time'][last]):g}  (mean ± standard error; derivatives by forward mode"
-        + ("" if len(argnums) == 2 else "; d/d nu is nan: it does not exist at nu = 0")
+        f"\nat t = {float(ds['time'][last]):g}  (value ± standard error; derivatives pathwise, by forward mode"
+        + ("" if len(wrt) == 2 else "; d/d nu is nan: it does not exist at nu = 0")
         + ")"
     )
-    print(f"{'quantity':<22}{'value':>26}{'d/d eps':>14}{'d/d nu':>14}")
+    print(f"{'quantity':<22}{'value':>26}{'d/d eps':>26}{'d/d nu':>26}")
     mean, mean_se, cov, cov_se = (ds[v].values[last] for v in ("mean", "mean_se", "cov", "cov_se"))
     for i, n in enumerate(names):
         label = f"m[{n}]" + (" (systematic drift)" if roles[i] == "dependent_coordinate" else "")
         print(
             f"{label:<22}{_fmt(mean[i], mean_se[i]):>26}"
-            f"{float(d_mean[0][last, i]):>14.5g}{float(d_mean[1][last, i]):>14.5g}"
+            + "".join(f"{_fmt(d_mean[a][last, i], d_mean_se[a][last, i]):>26}" for a in range(2))
         )
     for i, a in enumerate(names):
         for j, b in enumerate(names[: i + 1]):
             print(
                 f"{f'K[{a},{b}]':<22}{_fmt(cov[i, j], cov_se[i, j]):>26}"
-                f"{float(d_cov[0][last, i, j]):>14.5g}{float(d_cov[1][last, i, j]):>14.5g}"
+                + "".join(f"{_fmt(d_cov[q][last, i, j], d_cov_se[q][last, i, j]):>26}" for q in range(2))
             )
     if "dependent_coordinate" in roles and len(ens.ts) >= 3:
         d_eff = statistics.effective_diffusion(ens)
