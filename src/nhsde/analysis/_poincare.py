@@ -128,7 +128,9 @@ def _section(vector_field, energy, params, points, h, g0, n_crossings, dt, max_s
             return y1, f1, t + dt, state, count + hit.astype(count.dtype), step + 1, buf
 
         zero = jnp.zeros((), y0.dtype)
-        carry = (y0, crossing(y0)[0], zero, state0, jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), buf)
+        # y0 lies on the section by construction: its rounded crossing function (±1e-17) must not count it as the
+        # first crossing, so the loop starts as if just past the section
+        carry = (y0, jnp.ones((), y0.dtype), zero, state0, jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), buf)
         buf = jax.lax.while_loop(cond, body, carry)[-1]
         return jax.vmap(refine)(buf[:, 0], buf[:, 1:])
 

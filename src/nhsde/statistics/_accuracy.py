@@ -231,7 +231,7 @@ def _pilot(system, y0, key, cand: _Candidate, *, t0, t1, h0, levels, n_paths, sa
         t0=t0, t1=t1, dts=dts, brownian_dt=dts[-1], solver=cand.solver, save=save, batching=batching
     )
     start = time.perf_counter()
-    paths = coupled_paths(system, y0, key, n_paths=n_paths, antithetic=anti, **opts)
+    paths, _ = coupled_paths(system, y0, key, n_paths=n_paths, antithetic=anti, **opts)
     jax.block_until_ready(paths)
     seconds = time.perf_counter() - start
     n_sys = 2 if anti else 1

@@ -27,6 +27,7 @@ import dataclasses
 from collections.abc import Sequence
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
@@ -98,6 +99,27 @@ def paired_moments(paths: Sequence[Array], weights: Sequence[float]):
     return mean, cov, mean_var, cov_var
 
 
+def paired_sensitivities(paths: Sequence[Array], tangents: Sequence[Array], weights: Sequence[float]):
+    """``(d_mean, d_cov, d_mean_var, d_cov_var)``: derivatives of :func:`paired_moments`' mean and covariance, with
+    squared standard errors, from per-path tangents ``T_a (p, N, n, k)`` of the values ``Z_a`` (pathwise, as
+    :func:`~nhsde.statistics.moment_sensitivities`): ``∂mean = Σ_a w_a mean(T_a)``, ``∂cov = Σ_a w_a/(N−1) Σ_i ψ_a,i``
+    with ``ψ_a,i = (T_a,i − ∂m_a)F_a,iᵀ + F_a,i(T_a,i − ∂m_a)ᵀ``; the errors are those of the per-path sums over
+    ``a`` (the paths are shared)."""
+    n = paths[0].shape[0]
+    combined = sum(w * t for w, t in zip(weights, tangents, strict=True))
+    d_mean = jnp.mean(combined, axis=1)
+    d_mean_var = jnp.var(combined, axis=1, ddof=1) / n
+    psi = 0.0
+    for w, z, t in zip(weights, paths, tangents, strict=True):
+        f = z - jnp.mean(z, axis=0)
+        tc = t - jnp.mean(t, axis=1, keepdims=True)
+        tf = jnp.einsum("apni,pnj->apnij", tc, f)
+        psi = psi + w * (tf + jnp.swapaxes(tf, -1, -2))
+    d_cov = jnp.sum(psi, axis=1) / (n - 1)
+    d_cov_var = (n / (n - 1)) ** 2 * jnp.var(psi, axis=1, ddof=1) / n
+    return d_mean, d_cov, d_mean_var, d_cov_var
+
+
 def paths_save(save: Save | None, n_steps: int, names: tuple[str, ...]) -> Save:
     """``save`` with per-path values kept and its number of times fixed on a grid of ``n_steps`` (the coarsest)."""
     save = Save(names=names, n=2) if save is None else save
@@ -137,29 +159,43 @@ def coupled_paths(
     antithetic: bool,
     batching: Batching | None,
     first_path: int = 0,
-) -> list[Array]:
+    wrt: tuple[str, ...] = (),
+) -> tuple[list[Array], list[Array]]:
     """Per-path saved values ``(n_paths, n, k)`` of paths ``first_path …`` solved at each of ``dts`` on one Brownian
-    path of step ``brownian_dt``; with ``antithetic``, then the same for the reflected paths."""
+    path of step ``brownian_dt``; with ``antithetic``, then the same for the reflected paths.  With parameter names
+    ``wrt``, also their tangents ``(len(wrt), n_paths, n, k)`` (forward mode); else an empty list."""
     systems = (system, reflected(system)) if antithetic else (system,)
-    out = []
+    values = tuple(jnp.asarray(getattr(system.params, name)) for name in wrt)
+    out, tangents = [], []
     for s in systems:
         for dt in dts:
-            ens = simulate(
-                s,
-                y0,
-                key,
-                n_paths=n_paths,
-                t0=t0,
-                t1=t1,
-                steps=FixedSteps(dt, brownian_dt=brownian_dt),
-                solver=solver,
-                save=save,
-                batching=batching,
-                first_path=first_path,
-            )
-            assert ens.paths is not None
-            out.append(ens.paths)
-    return out
+
+            def per_path(*theta, s=s, dt=dt):
+                ens = simulate(
+                    s.replace_params(**dict(zip(wrt, theta, strict=True))) if wrt else s,
+                    y0,
+                    key,
+                    n_paths=n_paths,
+                    t0=t0,
+                    t1=t1,
+                    steps=FixedSteps(dt, brownian_dt=brownian_dt),
+                    solver=solver,
+                    save=save,
+                    batching=batching,
+                    first_path=first_path,
+                )
+                assert ens.paths is not None
+                return ens.paths
+
+            if wrt:
+                d, z = jax.jacfwd(lambda *theta: (per_path(*theta),) * 2, argnums=tuple(range(len(wrt))), has_aux=True)(
+                    *values
+                )
+                out.append(z)
+                tangents.append(jnp.stack(d))
+            else:
+                out.append(per_path())
+    return out, tangents
 
 
 def roles_of(system: StochasticSystem, names: tuple[str, ...]) -> tuple[str, ...]:
@@ -202,7 +238,7 @@ def extrapolate(
     n_steps = check_steps("dt", t1 - t0, h)
     save = paths_save(save, n_steps, system.layout.names)
     assert save.names is not None
-    paths = coupled_paths(
+    paths, _ = coupled_paths(
         system,
         y0,
         key,

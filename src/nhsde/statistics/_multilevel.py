@@ -53,10 +53,12 @@ from ._extrapolation import (
     coupled_paths,
     coupling_solver,
     paired_moments,
+    paired_sensitivities,
     paths_save,
     roles_of,
     safe_sqrt,
 )
+from ._sensitivities import check_wrt
 
 __all__ = ["MultilevelEstimate", "multilevel_monte_carlo"]
 
@@ -68,7 +70,8 @@ class MultilevelEstimate(Estimate):
     its estimate; per level ``ℓ``: ``n_paths_per_level[ℓ] = N_ℓ``, ``level_means[ℓ] = Ŷ_ℓ``
     (the target's level term), ``level_variances[ℓ] = V_ℓ`` (its per-sample variance),
     ``level_costs[ℓ] = C_ℓ`` (path-steps per sample); ``bias`` is the bias estimate
-    from the finest levels; ``dt`` is ``h₀``.
+    from the finest levels; ``dt`` is ``h₀``; with ``wrt``, ``d_value`` and ``d_value_se`` are the target's
+    derivatives in those parameters and their standard errors (else ``None``).
     """
 
     value: Float[Array, ""]
@@ -80,6 +83,9 @@ class MultilevelEstimate(Estimate):
     level_costs: tuple[float, ...] = eqx.field(static=True)
     target: tuple = eqx.field(static=True)
     dt: float = eqx.field(static=True)
+    d_value: Float[Array, " p"] | None
+    d_value_se: Float[Array, " p"] | None
+    wrt: tuple[str, ...] = eqx.field(static=True)
 
     @property
     def cost(self) -> float:
@@ -108,13 +114,14 @@ def _pick(kind, i, j, mean, cov):
 class _Levels:
     """Level runs, their per-path values kept."""
 
-    def __init__(self, system, y0, key, *, t0, t1, h0, solver, save, antithetic, piece_paths, batching):
+    def __init__(self, system, y0, key, *, t0, t1, h0, solver, save, antithetic, piece_paths, batching, wrt):
         self.args = (system, y0)
         self.key = key
-        self.opts = dict(t0=t0, t1=t1, solver=solver, save=save, antithetic=antithetic, batching=batching)
+        self.opts = dict(t0=t0, t1=t1, solver=solver, save=save, antithetic=antithetic, batching=batching, wrt=wrt)
         self.h0, self.piece_paths, self.antithetic = h0, piece_paths, antithetic
         self.steps0 = round((t1 - t0) / h0)
         self.paths: list[list[list[Array]]] = []  # level → run → sets
+        self.tangents: list[list[list[Array]]] = []  # the same, their tangents in wrt (empty without)
 
     def piece(self, level: int) -> int:
         return max(BLOCK, (self.piece_paths >> level) // BLOCK * BLOCK)
@@ -123,7 +130,7 @@ class _Levels:
         fine = self.steps0 * 2**level
         return (2.0 if self.antithetic else 1.0) * (fine + (fine // 2 if level else 0))
 
-    def run(self, level: int, first_path: int, n_paths: int) -> list[Array]:
+    def run(self, level: int, first_path: int, n_paths: int) -> tuple[list[Array], list[Array]]:
         h = self.h0 / 2**level
         dts = (h, 2 * h) if level else (h,)
         key = jr.fold_in(self.key, level)
@@ -135,20 +142,31 @@ class _Levels:
         """Run level ``level`` up to ``n_paths`` samples, in runs of the piece times a power of two (then the rest)."""
         while len(self.paths) <= level:
             self.paths.append([])
+            self.tangents.append([])
         piece = self.piece(level)
         while (missing := n_paths - self.count(level)) > 0:
             size = piece << ((missing // piece).bit_length() - 1) if missing >= piece else missing
-            self.paths[level].append(self.run(level, self.count(level), size))
+            paths, tangents = self.run(level, self.count(level), size)
+            self.paths[level].append(paths)
+            self.tangents[level].append(tangents)
 
     def count(self, level: int) -> int:
         return sum(p[0].shape[0] for p in self.paths[level]) if level < len(self.paths) else 0
 
+    def weights(self, level: int) -> list[float]:
+        share = 0.5 if self.antithetic else 1.0
+        return [share * w for w in ((1.0, -1.0) if level else (1.0,))] * (2 if self.antithetic else 1)
+
     def moments(self, level: int):
         """``(mean, cov, mean_var, cov_var)`` of the level's term ``P_ℓ − P_{ℓ−1}`` (``P_0`` at level 0)."""
         sets = [jnp.concatenate(parts) for parts in zip(*self.paths[level], strict=True)]
-        weights = (1.0, -1.0) if level else (1.0,)
-        share = 0.5 if self.antithetic else 1.0
-        return paired_moments(sets, [share * w for w in weights] * (2 if self.antithetic else 1))
+        return paired_moments(sets, self.weights(level))
+
+    def sensitivities(self, level: int):
+        """``(d_mean, d_cov, d_mean_var, d_cov_var)`` of the level's term in the parameters ``wrt``."""
+        sets = [jnp.concatenate(parts) for parts in zip(*self.paths[level], strict=True)]
+        tangents = [jnp.concatenate(parts, axis=1) for parts in zip(*self.tangents[level], strict=True)]
+        return paired_sensitivities(sets, tangents, self.weights(level))
 
 
 def _allocate(variances: Sequence[float], costs: Sequence[float], rmse: float) -> list[float]:
@@ -176,6 +194,7 @@ def multilevel_monte_carlo(
     piece_paths: int = 4096,
     max_levels: int = 12,
     batching: Batching | None = None,
+    wrt: Sequence[str] | None = None,
 ) -> MultilevelEstimate:
     """Multilevel Monte Carlo estimate of the saved means and covariances (module docstring).
 
@@ -194,6 +213,9 @@ def multilevel_monte_carlo(
     - ``piece_paths``: the smallest run on level 0 (halved per level, at least 64): samples are added in
       multiples of it.
     - ``max_levels``: the most levels to add before giving up.
+    - ``wrt``: names of scalar parameters (``('eps', 'nu')``): the target's derivatives in them,
+      ``d_value``, with their Monte-Carlo standard errors ``d_value_se`` (per-path tangents of every
+      level, :func:`~nhsde.statistics.moment_sensitivities`' estimator on the level differences).
     """
     if not isinstance(system, StochasticSystem):
         raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
@@ -236,6 +258,7 @@ def multilevel_monte_carlo(
     assert save.names is not None
     kind, i, j = _target_index(target, save.names)
     key = check_key(key)
+    wrt = () if wrt is None else check_wrt(system, wrt)
     levels = _Levels(
         system,
         y0,
@@ -248,6 +271,7 @@ def multilevel_monte_carlo(
         antithetic=antithetic,
         piece_paths=piece_paths,
         batching=batching,
+        wrt=wrt,
     )
 
     if n_paths is not None:
@@ -271,6 +295,14 @@ def multilevel_monte_carlo(
     level_means = jnp.stack([_pick(kind, i, j, m[0], m[1]) for m in moments])
     level_vars = jnp.stack([_pick(kind, i, j, m[2], m[3]) * n for m, n in zip(moments, counts)])
     value, var = _pick(kind, i, j, mean, cov), _pick(kind, i, j, mean_var, cov_var)
+    d_value = d_value_se = None
+    if wrt:
+        d_mean, d_cov, d_mean_var, d_cov_var = (
+            jnp.sum(jnp.stack(parts), axis=0)
+            for parts in zip(*(levels.sensitivities(level) for level in range(len(counts))), strict=True)
+        )
+        d_value = d_mean[:, -1, i] if kind == "mean" else d_cov[:, -1, i, j]
+        d_value_se = safe_sqrt(d_mean_var[:, -1, i] if kind == "mean" else d_cov_var[:, -1, i, j])
     return MultilevelEstimate(
         ts=jnp.linspace(t0, t1, mean.shape[0], dtype=mean.dtype),
         mean=mean,
@@ -289,6 +321,9 @@ def multilevel_monte_carlo(
         level_costs=tuple(levels.cost(level) for level in range(len(counts))),
         target=target,
         dt=h0,
+        d_value=d_value,
+        d_value_se=d_value_se,
+        wrt=wrt,
     )
 
 

@@ -91,7 +91,8 @@ def _sqrt(v):
     return jnp.where(pos, jnp.sqrt(jnp.where(pos, v, 1.0)), 0.0)
 
 
-def _check_wrt(system: StochasticSystem, wrt) -> tuple[str, ...]:
+def check_wrt(system: StochasticSystem, wrt) -> tuple[str, ...]:
+    """``wrt`` as a tuple of distinct scalar float parameter names of ``system``; else raises naming it."""
     if isinstance(wrt, str):
         wrt = (wrt,)
     if not isinstance(wrt, Sequence) or not wrt or not all(isinstance(w, str) for w in wrt):
@@ -212,7 +213,7 @@ def moment_sensitivities(
         raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
     if on_failure not in ("raise", "exclude"):
         raise ValueError(f"on_failure={on_failure!r}; allowed: 'raise', 'exclude'.")
-    wrt = _check_wrt(system, wrt)
+    wrt = check_wrt(system, wrt)
     save = Save() if save is None else save
     if not isinstance(save, Save):
         raise TypeError(f"save={save!r}; expected nhsde.Save(...).")
