@@ -34,7 +34,12 @@ from ._drift import (
     stationary_moments as stationary_moments,
     systematic_drift as systematic_drift,
 )
-from ._extrapolation import Estimate as Estimate, Extrapolation as Extrapolation, extrapolate as extrapolate
+from ._extrapolation import (
+    Derivatives as Derivatives,
+    Estimate as Estimate,
+    Extrapolation as Extrapolation,
+    extrapolate as extrapolate,
+)
 from ._fokker_planck import (
     GridDensity as GridDensity,
     fokker_planck as fokker_planck,

@@ -38,9 +38,10 @@ from .._simulate import simulate
 from .._solvers import solver_needs
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
+from ._sensitivities import check_wrt
 from ._variance_reduction import antithetic as reflected
 
-__all__ = ["Estimate", "Extrapolation", "extrapolate"]
+__all__ = ["Derivatives", "Estimate", "Extrapolation", "extrapolate"]
 
 
 class Estimate(AbstractMoments):
@@ -62,13 +63,25 @@ class Estimate(AbstractMoments):
         return self.mean_se, self.cov_se
 
 
+class Derivatives(eqx.Module):
+    """Derivatives of an estimate's means and covariances in the parameters ``wrt`` (leading axis), with their
+    Monte-Carlo standard errors (per-path tangents, :func:`paired_sensitivities`)."""
+
+    d_mean: Float[Array, "p n k"]
+    d_cov: Float[Array, "p n k k"]
+    d_mean_se: Float[Array, "p n k"]
+    d_cov_se: Float[Array, "p n k k"]
+    wrt: tuple[str, ...] = eqx.field(static=True)
+
+
 class Extrapolation(Estimate):
     """The extrapolated moments, with ``fine``, the plain moments ``S(h/2)`` of the same paths, and
     ``correction = S_ex − S(h/2)`` with its paired standard error: ``−correction`` estimates the bias of ``S(h/2)``,
-    ``−2^p·correction`` that of ``S(h)``."""
+    ``−2^p·correction`` that of ``S(h)``; ``derivatives`` of the extrapolated moments when asked for (``wrt``)."""
 
     fine: Estimate
     correction: Estimate
+    derivatives: Derivatives | None
 
 
 def safe_sqrt(v):
@@ -218,6 +231,7 @@ def extrapolate(
     save: Save | None = None,
     antithetic: bool = False,
     batching: Batching | None = None,
+    wrt: Sequence[str] | None = None,
 ) -> Extrapolation:
     """Richardson–Romberg extrapolation ``(2^p S(h/2) − S(h))/(2^p − 1)`` of every saved mean and covariance.
 
@@ -227,9 +241,12 @@ def extrapolate(
     on additive noise, where they are weak order 2).  ``save`` defaults to the
     whole state at ``t0`` and ``t1``.  ``antithetic`` adds the reflected paths.
     The standard errors are those of the paired per-path combination (module).
+    ``wrt``: names of scalar parameters (``('eps', 'nu')``): ``derivatives`` of the extrapolated
+    moments in them, with standard errors (per-path tangents).
     """
     if not isinstance(system, StochasticSystem):
         raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
+    wrt = () if wrt is None else check_wrt(system, wrt)
     solver_needs(coupling_solver(solver), system)
     if order is None:
         order = 2 if isinstance(solver, PlatenWeak2) else 1
@@ -238,7 +255,7 @@ def extrapolate(
     n_steps = check_steps("dt", t1 - t0, h)
     save = paths_save(save, n_steps, system.layout.names)
     assert save.names is not None
-    paths, _ = coupled_paths(
+    paths, tangents = coupled_paths(
         system,
         y0,
         key,
@@ -251,6 +268,7 @@ def extrapolate(
         n_paths=n_paths,
         antithetic=bool(antithetic),
         batching=batching,
+        wrt=wrt,
     )
     share = 0.5 if antithetic else 1.0
 
@@ -270,8 +288,15 @@ def extrapolate(
 
     names, c = save.names, 1 / (2**p - 1)
     extrapolated = estimate(-c, 1 + c)
+    derivatives = None
+    if wrt:
+        d_mean, d_cov, d_mean_var, d_cov_var = paired_sensitivities(
+            paths, tangents, [share * -c, share * (1 + c)] * (len(paths) // 2)
+        )
+        derivatives = Derivatives(d_mean, d_cov, safe_sqrt(d_mean_var), safe_sqrt(d_cov_var), wrt)
     return Extrapolation(
         **{f.name: getattr(extrapolated, f.name) for f in dataclasses.fields(Estimate)},
         fine=estimate(0.0, 1.0),
         correction=estimate(-c, c),
+        derivatives=derivatives,
     )
