@@ -47,10 +47,25 @@ def test_reaches_the_requested_rmse_on_the_ball():
     assert "chosen: " + r.choice in text and "multilevel, euler" in text
 
 
+def test_derivatives_with_standard_errors_on_the_ball():
+    """``wrt=``: ∂K_xx(1)/∂(ε, ν) from the chosen estimator's per-path tangents are within 4 SE (99.99 %) of the
+    closed form's derivatives (``jax.jacfwd`` of ``ball_covariances``), and the report prints them."""
+    exact = jax.jacfwd(lambda th: ball_covariances(jnp.float64(1.0), th[0], th[1], DELTA)[0])(jnp.array([1.0, 1.0]))
+    r = to_accuracy(BALL.build(), Y0, jax.random.key(20), rmse=0.08 * K_XX, wrt=("eps", "nu"), **FAST)
+    assert r.wrt == ("eps", "nu") and r.derivative.shape == r.derivative_se.shape == (2,)
+    assert np.all(r.derivative_se > 0) and np.all(np.abs(r.derivative - np.asarray(exact)) <= 4 * r.derivative_se), (
+        r.derivative,
+        r.derivative_se,
+        exact,
+    )
+    assert f"d/deps = {r.derivative[0]:.6g} ± " in r.report()
+
+
 def test_relative_rmse_and_the_budget_guard():
     system = BALL.build()
     r = to_accuracy(system, Y0, jax.random.key(1), relative_rmse=0.1, **FAST)
     assert r.rmse == pytest.approx(0.1 * abs(r.pilot[0].values[-1]))
+    assert r.wrt == () and r.derivative.shape == r.derivative_se.shape == (0,) and "d/d" not in r.report()
     with pytest.raises(ValueError, match="max_path_steps="):
         to_accuracy(system, Y0, jax.random.key(1), rmse=1e-4, max_path_steps=1e6, **FAST)
     with pytest.raises(ValueError, match="relative_rmse="):  # the mean of x is 0 from rest
@@ -74,6 +89,11 @@ def test_bad_input_raises_naming_the_argument():
             to_accuracy(system, Y0, key, rmse=0.1, t1=1.0, statistic=statistic)
     with pytest.raises(ValueError, match="statistic="):  # a name the save does not keep
         to_accuracy(system, Y0, key, rmse=0.1, save=nhsde.Save(names=("u_x",)), **base)
+    for wrt in (("delta_x",), ("eps", "eps")):
+        with pytest.raises(ValueError, match="wrt="):
+            to_accuracy(system, Y0, key, rmse=0.1, wrt=wrt, **base)
+    with pytest.raises(TypeError, match="wrt="):
+        to_accuracy(system, Y0, key, rmse=0.1, wrt=(), **base)
     with pytest.raises(ValueError, match="steps="):
         to_accuracy(system, Y0, key, rmse=0.1, steps=nhsde.AdaptiveSteps(0.25), **base)
     with pytest.raises(ValueError, match="dt="):
@@ -112,15 +132,21 @@ def test_cli_rmse_prints_the_choice_and_value(capsys, tmp_path):
     for method in ("plain MC", "extrapolation", "multilevel"):  # each also with antithetic pairs
         assert f"{method}, euler, antithetic " in out, out
     assert "control variate, euler" in out, out
-    value = float(out.split("K[x,x] = ")[1].split("±")[0])
+    value = float(out.split("\nK[x,x] = ")[1].split("±")[0])
     assert abs(value - K_XX) < 5 * 0.004  # 5 target RMSEs: Chebyshev, ≥ 96 %
+    # derivatives in eps and nu with their standard errors, within 4 SE (and rounding) of the closed form's
+    exact = jax.jacfwd(lambda th: ball_covariances(jnp.float64(1.0), th[0], th[1], DELTA)[0])(jnp.array([1.0, 1.0]))
+    for q, want in zip(("eps", "nu"), np.asarray(exact)):
+        d, se = (float(x) for x in out.split(f"dK[x,x]/d{q} = ")[1].split("(")[0].split("±"))
+        assert abs(d - want) <= 4 * se + 1e-6 * abs(want), (q, d, se, want, out)
     run = tmp_path / "run.toml"
     run.write_text(
         'scene = "ball-on-vibrating-plane"\n[solver]\ndt = 0.25\nt1 = 1.0\n[statistics]\nsave_points = 2\n'
         '[accuracy]\nrmse = 0.004\nsolver = "euler"\n'
     )
     assert main(["simulate", "--config", str(run)]) == 0
-    assert "K[x,x] = " in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "K[x,x] = " in out and "dK[x,x]/deps = " in out and "dK[x,x]/dnu = " in out, out
     for extra, match in [
         (["--rmse", "0"], "--rmse 0"),
         (["--rmse", "0.01", "--relative-rmse", "0.1"], "exactly one"),

@@ -86,6 +86,12 @@ def test_gradient_of_the_cv_estimate_is_the_exact_derivative():
     grad = jax.jacfwd(k_xx_cv)(theta)
     exact = jax.jacfwd(lambda th: ball_covariances(jnp.float64(1.0), th[0], th[1], DELTA)[0])(theta)
     np.testing.assert_allclose(np.asarray(grad), np.asarray(exact), rtol=1e-9)
+    # wrt=: the same derivatives, with standard errors of the residual tangents ∂Y − β∂C, rounding here
+    est = control_variate(system.replace_params(eps=0.8, nu=1.3), Y0, jax.random.key(3), wrt=("eps", "nu"), **BALL_ARGS)
+    d = est.derivatives
+    assert d is not None and d.wrt == ("eps", "nu")
+    np.testing.assert_allclose(np.asarray(d.d_cov[:, -1, 0, 0]), np.asarray(exact), rtol=1e-9)
+    assert np.all(np.asarray(d.d_cov_se) <= 1e-9) and np.all(np.asarray(d.d_mean_se) <= 1e-9)
 
 
 @pytest.mark.slow
@@ -134,6 +140,51 @@ def test_sleigh_energy_agrees_and_the_variance_falls_like_the_noise():
     assert reductions[1] > 2 * reductions[0], reductions
 
 
+def test_derivatives_are_jacfwd_of_the_estimate_on_the_sleigh():
+    """``wrt=``: the derivatives (β fixed) are ``jax.jacfwd`` of ``.mean`` and ``.cov`` in (ε, ν) up to rounding,
+    on a nonlinear system with an observable and a state component saved at three times (β ≠ 1, varying)."""
+    system = ChaplyginSleigh(eps=SLEIGH_EPS, nu=1.0, drift=False).build()
+    args = dict(n_paths=32, t1=1.0, dt=1 / 8, save=nhsde.Save(names=("energy", "v"), n=3))
+
+    def moments(theta):
+        est = control_variate(system.replace_params(eps=theta[0], nu=theta[1]), SLEIGH_Y0, jax.random.key(4), **args)
+        return est.mean, est.cov
+
+    d_mean, d_cov = (jnp.moveaxis(j, -1, 0) for j in jax.jacfwd(moments)(jnp.array([SLEIGH_EPS, 1.0])))
+    d = control_variate(system, SLEIGH_Y0, jax.random.key(4), wrt=("eps", "nu"), **args).derivatives
+    assert d is not None
+    for got, want in ((d.d_mean, d_mean), (d.d_cov, d_cov)):
+        np.testing.assert_allclose(
+            np.asarray(got), np.asarray(want), rtol=1e-9, atol=1e-12 * float(jnp.abs(want).max())
+        )
+    assert np.all(np.asarray(d.d_mean_se[:, 1:]) > 0) and np.all(np.asarray(d.d_cov_se[:, 1:]) > 0)
+
+
+def test_derivative_of_the_sleigh_energy_agrees_with_plain_sensitivities():
+    """∂E[H](t1)/∂(ε, ν) by the control variate and by an independent plain pathwise estimate
+    (``moment_sensitivities``, another key) agree within 4 combined SEs (99.99 %), and both are within 4 of their
+    own SEs of the closed form's derivative (SRA1 at h = 1/16: bias well below the SEs, as for the value).  The
+    control removes most of the tangents' variance too: the CV's SEs are below half the plain ones (measured
+    3.5× below in ε, 3.2× in ν)."""
+    system = ChaplyginSleigh(eps=SLEIGH_EPS, nu=1.0, drift=False).build()
+    wrt = ("eps", "nu")
+    d = control_variate(system, SLEIGH_Y0, jax.random.key(1), wrt=wrt, **SLEIGH_ARGS).derivatives
+    plain = nhsde.statistics.moment_sensitivities(system, SLEIGH_Y0, jax.random.key(2), wrt=wrt, **SLEIGH_ARGS)
+    assert d is not None
+    cv, cv_se = np.asarray(d.d_mean[:, -1, 0]), np.asarray(d.d_mean_se[:, -1, 0])
+    pl, pl_se = np.asarray(plain.d_mean[:, -1, 0]), np.asarray(plain.d_mean_se[:, -1, 0])
+    assert np.all(np.abs(cv - pl) <= 4 * np.hypot(cv_se, pl_se)), (cv, cv_se, pl, pl_se)
+    assert np.all(cv_se < 0.5 * pl_se), (cv_se, pl_se)
+
+    def energy(theta):  # E[H](t1) = H0 e^{−4εt} + ν(1 − e^{−4εt})/(4ε)
+        decay = jnp.exp(-4 * theta[0] * SLEIGH_T1)
+        return 0.75 * decay + theta[1] * (1 - decay) / (4 * theta[0])
+
+    exact = np.asarray(jax.grad(energy)(jnp.array([SLEIGH_EPS, 1.0])))
+    assert np.all(np.abs(cv - exact) <= 4 * cv_se), (cv, cv_se, exact)
+    assert np.all(np.abs(pl - exact) <= 4 * pl_se), (pl, pl_se, exact)
+
+
 # ----------------------------------------------------------------------------- bad input
 
 
@@ -150,6 +201,8 @@ def test_sleigh_energy_agrees_and_the_variance_falls_like_the_noise():
         (dict(dt=0.3), "dt"),
         (dict(solver="rk4"), "solver='rk4'"),
         (dict(t1=0.0), "t1=0.0"),
+        (dict(wrt=("delta_x",)), "wrt="),
+        (dict(wrt=("eps", "eps")), "wrt="),
     ],
 )
 def test_bad_input_names_the_argument(kwargs, match):

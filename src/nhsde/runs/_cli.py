@@ -221,7 +221,8 @@ def _accuracy_given(args) -> bool:
 
 
 def _run_accuracy(config, built) -> int:
-    """``[accuracy]`` of a run (or ``--rmse``): one statistic at ``t1`` by :func:`~nhsde.statistics.to_accuracy`."""
+    """``[accuracy]`` of a run (or ``--rmse``): one statistic at ``t1`` by :func:`~nhsde.statistics.to_accuracy`,
+    with its pathwise derivatives in ``eps`` and ``nu`` (``eps`` only at ``nu = 0``) and their standard errors."""
     from .._ensemble import Save
     from .._weak import PlatenWeak2
     from ..scenes import ball_covariances
@@ -236,6 +237,8 @@ def _run_accuracy(config, built) -> int:
     target = f"rmse {a['rmse']:g}" if a["rmse"] is not None else f"relative rmse {a['relative_rmse']:g}"
     label = f"m[{statistic[1]}]" if statistic[0] == "mean" else f"K[{statistic[1]},{statistic[2]}]"
     params = config.parameters()
+    # at ν = 0 paths scale like √ν: the ν-derivative does not exist (as in the plain simulate path)
+    wrt = ("eps", "nu") if float(built.system.params.nu) > 0 else ("eps",)
     print(f"scene {d['scene']}: " + ", ".join(f"{k}={v:g}" for k, v in params.items()))
     print(
         f"{label} at t = {s['t1']:g} to {target}: pilots from the coarsest step dt = {s['dt']:g}, "
@@ -255,12 +258,17 @@ def _run_accuracy(config, built) -> int:
         solver=solver,
         save=Save(names=built.names, n=2),
         max_path_steps=a["max_path_steps"],
+        wrt=wrt,
     )
     print(result.report())
     print(
         f"\n{label} = {_fmt(result.value, result.standard_error)}  (mean ± standard error; bias estimate "
         f"{result.bias:.2g}; target rmse {result.rmse:.3g}, estimated {result.estimated_rmse:.3g})"
     )
+    for q, value, se in zip(result.wrt, result.derivative, result.derivative_se, strict=True):
+        print(f"d{label}/d{q} = {_fmt(value, se)}  (pathwise, by forward mode, on the same paths)")
+    if len(wrt) == 1:
+        print(f"d{label}/dnu: does not exist at nu = 0")
     print(
         f"work: {result.work:.4g} path-steps ({result.pilot_work:.4g} in pilots), {result.seconds:.1f} s; "
         f"by {result.choice}"

@@ -25,7 +25,10 @@ differences.  For a target RMSE ``ε`` it predicts the work (path-steps) of
 - a control variate, where :mod:`nhsde.statistics` provides one;
 
 runs the cheapest and returns its value, standard error and bias estimate with
-the work done, pilot included, and a report of every alternative.
+the work done, pilot included, and a report of every alternative.  With ``wrt``
+the chosen estimator also returns the statistic's pathwise derivatives in those
+parameters with their Monte-Carlo standard errors (per-path tangents; the target
+applies to the value, the derivatives come from the same paths).
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ import diffrax as dfx
 import jax
 import jax.numpy as jnp
 import jax.random as jr
+import numpy as np
 
 from .._brownian import BLOCK
 from .._ensemble import Save
@@ -48,8 +52,10 @@ from .._options import AbstractSteps, Batching, FixedSteps
 from .._solvers import solver_needs
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
+from ._control_variate import control_variate as linearised_control_variate
 from ._extrapolation import coupled_paths, coupling_solver, extrapolate, paired_moments
-from ._multilevel import multilevel_monte_carlo
+from ._multilevel import MultilevelEstimate, multilevel_monte_carlo
+from ._sensitivities import check_wrt
 
 __all__ = ["AccuracyAlternative", "AccuracyResult", "to_accuracy"]
 
@@ -109,7 +115,9 @@ class AccuracyResult:
     ``rmse`` is the absolute target, ``work`` the path-steps done (pilot included,
     ``pilot_work`` of them), ``choice`` the name of the alternative run,
     ``alternatives`` all of them with their predicted work, ``pilot`` one summary
-    per solver, ``result`` what the chosen estimator returned.  ``report()`` (also
+    per solver, ``result`` what the chosen estimator returned.  ``derivative`` and
+    ``derivative_se`` ``(len(wrt),)``: the statistic's derivatives in the parameters
+    ``wrt`` and their standard errors (empty without ``wrt``).  ``report()`` (also
     ``str``) prints it as a short table.
     """
 
@@ -125,6 +133,9 @@ class AccuracyResult:
     reason: str
     alternatives: tuple[AccuracyAlternative, ...]
     pilot: tuple[PilotSummary, ...]
+    wrt: tuple[str, ...]
+    derivative: np.ndarray
+    derivative_se: np.ndarray
     result: object = dataclasses.field(repr=False, compare=False)
 
     @property
@@ -139,6 +150,10 @@ class AccuracyResult:
             f"{stat} at target rmse {self.rmse:.3g}: {self.value:.6g} ± {self.standard_error:.2g} "
             f"(bias estimate {self.bias:.2g}); work {self.work:.3g} path-steps, pilot {self.pilot_work:.3g}, "
             f"{self.seconds:.1f} s",
+            *(
+                f"  d/d{name} = {d:.6g} ± {se:.2g}"
+                for name, d, se in zip(self.wrt, self.derivative, self.derivative_se, strict=True)
+            ),
             "pilot (per-sample variance V at the finest pilot step; level variances V_ℓ; bias E S(h) − S ≈ C h^p):",
             f"  {'solver':<22}{'dts':<24}{'V':>11}{'V anti':>11}{'C':>11}{'|C| ≤':>11}  V_ℓ",
         ]
@@ -180,6 +195,23 @@ def check_statistic(statistic, names: tuple[str, ...]):
     if missing:
         raise ValueError(f"statistic={statistic!r} names {missing}, which are not saved; available: {names}.")
     return statistic[0], names.index(statistic[1]), names.index(statistic[-1])
+
+
+def _derivative_of(result, index, wrt: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """The statistic's derivatives and their standard errors ``(len(wrt),)`` from an estimator's result."""
+    if not wrt:
+        return np.zeros(0), np.zeros(0)
+    if isinstance(result, MultilevelEstimate):
+        d, se = result.d_value, result.d_value_se
+    else:
+        kind, i, j = index
+        r = result.derivatives
+        d, se = (
+            (r.d_mean[:, -1, i], r.d_mean_se[:, -1, i])
+            if kind == "mean"
+            else (r.d_cov[:, -1, i, j], r.d_cov_se[:, -1, i, j])
+        )
+    return np.asarray(d, dtype=float), np.asarray(se, dtype=float)
 
 
 def _pick(kind, i, j, moments):
@@ -397,6 +429,7 @@ def to_accuracy(
     cost: str = "path-steps",
     control_variate: bool = True,
     batching: Batching | None = None,
+    wrt: Sequence[str] | None = None,
 ) -> AccuracyResult:
     """``statistic`` at ``t1`` to a root-mean-square error ``rmse`` by the estimator a pilot predicts cheapest (module).
 
@@ -417,6 +450,8 @@ def to_accuracy(
     - ``cost``: ``'path-steps'``, or ``'seconds'`` (path-steps times each solver's
       measured seconds per path-step from a second, compiled, pilot run).
     - ``control_variate``: consider a control variate where one is available.
+    - ``wrt``: names of scalar parameters (``('eps', 'nu')``): the statistic's derivatives in them with their
+      standard errors (``derivative``, ``derivative_se``), from the chosen estimator's per-path tangents.
     """
     t_start = time.perf_counter()
     if not isinstance(system, StochasticSystem):
@@ -468,6 +503,7 @@ def to_accuracy(
     max_path_steps = check_number("max_path_steps", max_path_steps, positive=True)
     if cost not in ("path-steps", "seconds"):
         raise ValueError(f"cost={cost!r}; allowed: 'path-steps', 'seconds'.")
+    wrt = () if wrt is None else check_wrt(system, wrt)
     if not is_concrete(system, y0):
         raise TypeError("to_accuracy chooses path counts from a pilot: it needs concrete parameters, not traced ones.")
     key = check_key(key)
@@ -510,7 +546,7 @@ def to_accuracy(
         rmse = relative_rmse * abs(value)
 
     common: dict[str, Any] = dict(
-        run=dict(t0=t0, t1=t1, save=save, batching=batching),
+        run=dict(t0=t0, t1=t1, save=save, batching=batching, wrt=wrt or None),
         t0=t0,
         t1=t1,
         save=save,
@@ -547,6 +583,7 @@ def to_accuracy(
         reason += f", {key_of(ranked[1]) / key_of(chosen):.2g}× below the next, {ranked[1].name}"
     assert chosen.run is not None
     value, se, bias, work, result = chosen.run()
+    derivative, derivative_se = _derivative_of(result, (kind, i, j), wrt)
     return AccuracyResult(
         statistic=statistic,
         value=float(value),
@@ -560,6 +597,9 @@ def to_accuracy(
         reason=reason,
         alternatives=tuple(alternatives),
         pilot=tuple(pilots),
+        wrt=wrt,
+        derivative=derivative,
+        derivative_se=derivative_se,
         result=result,
     )
 
@@ -698,18 +738,10 @@ def _runner_multilevel(system, y0, key, cand, h0, counts, piece, anti, common):
 
 
 def _control_variate_alternative(system, y0, pilot_key, run_key, eps, h0, steps0, common) -> AccuracyAlternative:
-    """A control variate (Euler), where ``nhsde.statistics`` provides one; its pilot gives the variance reduction."""
+    """The control variate of :func:`~nhsde.statistics.control_variate` (Euler).  Pilot: it at the two finest pilot
+    steps on one Brownian path; its variance per path at the finest, its bias ``C h`` bounded by
+    ``(|ΔŶ| + 2(SE_a + SE_b))/h_b`` (Euler, ``p = 1``)."""
     name = "control variate, euler"
-    try:
-        from ._control_variate import control_variate  # pyright: ignore[reportMissingImports]
-    except ImportError:
-        return AccuracyAlternative(name, "control variate", "euler", False, math.inf, note="not available")
-    return _control_variate_plan(control_variate, system, y0, pilot_key, run_key, eps, h0, steps0, common, name)
-
-
-def _control_variate_plan(cv, system, y0, pilot_key, run_key, eps, h0, steps0, common, name):
-    """Pilot: the control variate at the two finest pilot steps on one Brownian path; its variance per path at the
-    finest, its bias ``C h`` bounded by ``(|ΔŶ| + 2(SE_a + SE_b))/h_b`` (Euler, ``p = 1``)."""
     kind, i, j = common["index"]
     opts = dict(t0=common["t0"], t1=common["t1"], batching=common["run"]["batching"])
     save = Save(names=common["save"].names, n=common["save"].n)
@@ -718,7 +750,9 @@ def _control_variate_plan(cv, system, y0, pilot_key, run_key, eps, h0, steps0, c
     key = jr.fold_in(pilot_key, 99)
     try:
         runs = [
-            cv(system, y0, key, n_paths=n_pilot, steps=FixedSteps(h, brownian_dt=h_b), save=save, **opts)
+            linearised_control_variate(
+                system, y0, key, n_paths=n_pilot, steps=FixedSteps(h, brownian_dt=h_b), save=save, **opts
+            )
             for h in (h_a, h_b)
         ]
     except (ValueError, TypeError, NotImplementedError) as e:
@@ -739,7 +773,9 @@ def _control_variate_plan(cv, system, y0, pilot_key, run_key, eps, h0, steps0, c
     bias = -(vb - va) / h_b * h  # E Ŷ(h) − S ≈ C h with C = −ΔŶ/h_b (p = 1)
 
     def run():
-        res = cv(system, y0, run_key, n_paths=n, dt=h, save=save, **opts)
+        res = linearised_control_variate(
+            system, y0, run_key, n_paths=n, dt=h, save=save, wrt=common["run"]["wrt"], **opts
+        )
         value, se = _statistic_of(res, (kind, i, j))
         return value, se, bias, float(res.cost), res
 

@@ -48,7 +48,14 @@ pathwise derivative (controlled by the tangent of ``C``, whose mean ``∂E C`` i
 exact), with the same bias structure as above; no derivative is taken of a ratio
 of sample covariances (noisy, and 0/0 where the control has no variance, e.g. at
 ``t0``).  Differentiating β too would only add ``∂β·(Ĉ − E C)``, a term of mean
-zero up to the scheme's bias: more noise, no less bias.
+zero up to the scheme's bias: more noise, no less bias.  With ``wrt`` the result
+carries these derivatives with their standard errors, from the per-path tangents
+``T_Y``, ``T_C`` of both solves (forward mode) and ``∂E C`` of the moment equations:
+
+    ∂Ŷ_cv = mean(T_Y − β T_C) + β ∂E C,   SE² = Var(T_Y − β T_C)/N
+
+for a mean, and the same with the influences ``ψ`` of :func:`paired_sensitivities`
+for a covariance (weights ``1, −β``; ``∂E C`` is exact and adds no error).
 
 Cost: two solves of ``n_paths`` paths (``cost = 2·n_paths·steps`` path-steps);
 a control step also costs one Jacobian-vector product of the drift.
@@ -72,8 +79,18 @@ from .._simulate import MIN_PATHS, simulate
 from .._solvers import solver_needs
 from .._system import StateLayout, StochasticSystem
 from ..noise import driver_intensity
-from ._extrapolation import Estimate, paired_moments, paths_save, roles_of, safe_sqrt
+from ._extrapolation import (
+    Derivatives,
+    Estimate,
+    paired_moments,
+    paired_sensitivities,
+    paths_save,
+    roles_of,
+    safe_sqrt,
+    with_tangents,
+)
 from ._moments import GaussianClosure, integrate_moments
+from ._sensitivities import check_wrt
 
 __all__ = ["ControlVariateEstimate", "PerEntry", "control_variate", "linearised_system"]
 
@@ -95,13 +112,15 @@ class ControlVariateEstimate(Estimate):
     - ``coefficient``: β per entry; ``variance_reduction``: ``Var Y / Var(Y − βC)`` per entry
       (``inf`` where the residual has no variance, 1 where neither has any);
     - ``control``: the exact mean and covariance of the control's saved quantities;
-    - ``cost``: path-steps of both solves, ``2·n_paths·steps`` (``plain_cost``: one solve).
+    - ``cost``: path-steps of both solves, ``2·n_paths·steps`` (``plain_cost``: one solve);
+    - ``derivatives``: with ``wrt``, those of ``mean`` and ``cov`` with β fixed, with their standard errors (module).
     """
 
     plain: Estimate
     coefficient: PerEntry
     variance_reduction: PerEntry
     control: PerEntry
+    derivatives: Derivatives | None
     n_steps: int = eqx.field(static=True)
 
     @property
@@ -242,19 +261,24 @@ def _closure(control: StochasticSystem, dtype) -> GaussianClosure:
 
 
 @eqx.filter_jit
-def _statistics(closure, ito, params, names, p0, y0, y, c, t0, t1, n_ode, n_save):
-    """Exact control moments, plain and control moments of the paths, and ``(β, residual variance, reduction)``
-    for the means and the covariances."""
+def _exact(closure, ito, params, names, p0, y0, t0, t1, n_ode, n_save):
+    """``(ts, mean, cov)``: the exact moments of the saved quantities' controls at the save times."""
     d = y0.shape[0]
     zeros = jnp.zeros((2 * d, 2 * d), y0.dtype)
     ts, ms, ks = integrate_moments(closure, jnp.concatenate([p0, y0]), zeros, t0, t1, n_ode, n_save)
-    exact_mean, exact_cov = _control_moments(ito, params, names, ts, ms[:, :d], ms[:, d:], ks[:, d:, d:])
+    return ts, *_control_moments(ito, params, names, ts, ms[:, :d], ms[:, d:], ks[:, d:, d:])
+
+
+@eqx.filter_jit
+def _statistics(y, c):
+    """Plain and control moments of the paths, and ``(β, residual variance, reduction)`` for the means and the
+    covariances."""
     plain = paired_moments([y], [1.0])
     mean_c, cov_c, mvar_c, cvar_c = paired_moments([c], [1.0])
     _, _, mvar_s, cvar_s = paired_moments([y, c], [1.0, 1.0])
     split_m, split_c = _split(plain[2], mvar_c, mvar_s), _split(plain[3], cvar_c, cvar_s)
     beta, resid, reduction = zip(split_m, split_c, strict=True)
-    return ts, exact_mean, exact_cov, plain, (mean_c, cov_c), beta, resid, reduction
+    return plain, (mean_c, cov_c), beta, resid, reduction
 
 
 def _reference(system, y0, linearisation):
@@ -287,6 +311,7 @@ def control_variate(
     save: Save | None = None,
     linearisation=None,
     batching: Batching | None = None,
+    wrt=None,
 ) -> ControlVariateEstimate:
     """Means and covariances of the saved quantities with the linearised system as control variate (module).
 
@@ -300,10 +325,12 @@ def control_variate(
     system (Euler, Milstein, Heun, heun2, SRA1, exponential,
     :class:`~nhsde.PlatenWeak2`); with a jump driver (Euler only), state components
     only.  Differentiable in the
-    parameters with β held fixed (module).
+    parameters with β held fixed (module).  ``wrt``: names of scalar parameters
+    (``('eps', 'nu')``): ``derivatives`` of the estimate in them (β fixed), with standard errors.
     """
     if not isinstance(system, StochasticSystem):
         raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
+    wrt = () if wrt is None else check_wrt(system, wrt)
     n_paths = check_number("n_paths", n_paths, integer=True)
     if n_paths < MIN_PATHS:
         raise ValueError(f"n_paths={n_paths}; must be ≥ {MIN_PATHS} (a covariance and its standard error need 4).")
@@ -325,7 +352,6 @@ def control_variate(
     steps = FixedSteps(h) if steps is None else steps
     y0 = system.state(y0, "y0")
     follow, p0 = _reference(system, y0, linearisation)
-    control = linearised_system(system, follow=follow)
     solver_needs(solver, system)  # names the solver if it cannot solve the system
     save = paths_save(save, n_steps, system.layout.names)
     assert save.names is not None
@@ -347,16 +373,32 @@ def control_variate(
         assert ens.paths is not None
         return ens.paths
 
-    y, c = run(system, y0), run(control, jnp.concatenate([p0, y0]))
-
     n_save = save.n
     assert n_save is not None
     n_ode = (n_save - 1) * math.ceil(max(4 * n_steps, _ODE_STEPS) / (n_save - 1))
-    ito = system.converted("ito")
-    ts, exact_mean, exact_cov, (mean_y, cov_y, mvar_y, cvar_y), (mean_c, cov_c), beta, resid, reduction = _statistics(
-        _closure(control, y0.dtype), ito, cast_floats(ito.params, y0.dtype), names, p0, y0, y, c, t0, t1, n_ode, n_save
-    )
+
+    def exact(s: StochasticSystem):
+        ito = s.converted("ito")
+        closure = _closure(linearised_system(s, follow=follow), y0.dtype)
+        return _exact(closure, ito, cast_floats(ito.params, y0.dtype), names, p0, y0, t0, t1, n_ode, n_save)
+
+    y, t_y = with_tangents(lambda s: run(s, y0), system, wrt)
+    c, t_c = with_tangents(lambda s: run(linearised_system(s, follow=follow), jnp.concatenate([p0, y0])), system, wrt)
+    (ts, exact_mean, exact_cov), d_exact = with_tangents(exact, system, wrt)
+    (mean_y, cov_y, mvar_y, cvar_y), (mean_c, cov_c), beta, resid, reduction = _statistics(y, c)
     (beta_m, beta_c), (resid_m, resid_c), (red_m, red_c) = beta, resid, reduction
+    derivatives = None
+    if wrt:
+        assert t_y is not None and t_c is not None and d_exact is not None
+        d_mean, d_cov, d_mean_var, d_cov_var = paired_sensitivities([y, c], [t_y, t_c], [1.0, -beta_m], [1.0, -beta_c])
+        _, d_exact_mean, d_exact_cov = d_exact
+        derivatives = Derivatives(
+            d_mean + beta_m * d_exact_mean,
+            d_cov + beta_c * d_exact_cov,
+            safe_sqrt(d_mean_var),
+            safe_sqrt(d_cov_var),
+            wrt,
+        )
 
     count, roles = jnp.asarray(n_paths), roles_of(system, names)
     plain_estimate = Estimate(
@@ -379,6 +421,7 @@ def control_variate(
         coefficient=PerEntry(mean=beta_m, cov=beta_c),
         variance_reduction=PerEntry(mean=red_m, cov=red_c),
         control=PerEntry(mean=exact_mean, cov=exact_cov),
+        derivatives=derivatives,
         n_paths=count,
         names=names,
         roles=roles,

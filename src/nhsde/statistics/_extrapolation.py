@@ -24,7 +24,8 @@ centring means is of higher order), ``Var ψ_ij = E ψ_ij² − (E ψ_ij)²`` wi
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -112,18 +113,22 @@ def paired_moments(paths: Sequence[Array], weights: Sequence[float]):
     return mean, cov, mean_var, cov_var
 
 
-def paired_sensitivities(paths: Sequence[Array], tangents: Sequence[Array], weights: Sequence[float]):
+def paired_sensitivities(
+    paths: Sequence[Array], tangents: Sequence[Array], weights: Sequence, cov_weights: Sequence | None = None
+):
     """``(d_mean, d_cov, d_mean_var, d_cov_var)``: derivatives of :func:`paired_moments`' mean and covariance, with
     squared standard errors, from per-path tangents ``T_a (p, N, n, k)`` of the values ``Z_a`` (pathwise, as
-    :func:`~nhsde.statistics.moment_sensitivities`): ``∂mean = Σ_a w_a mean(T_a)``, ``∂cov = Σ_a w_a/(N−1) Σ_i ψ_a,i``
+    :func:`~nhsde.statistics.moment_sensitivities`): ``∂mean = Σ_a w_a mean(T_a)``, ``∂cov = Σ_a w'_a/(N−1) Σ_i ψ_a,i``
     with ``ψ_a,i = (T_a,i − ∂m_a)F_a,iᵀ + F_a,i(T_a,i − ∂m_a)ᵀ``; the errors are those of the per-path sums over
-    ``a`` (the paths are shared)."""
+    ``a`` (the paths are shared).  Weights are numbers or arrays per entry (``(n, k)`` for the mean, ``(n, k, k)``
+    for the covariance: ``cov_weights`` ``w'``, default ``weights``)."""
+    cov_weights = weights if cov_weights is None else cov_weights
     n = paths[0].shape[0]
     combined = sum(w * t for w, t in zip(weights, tangents, strict=True))
     d_mean = jnp.mean(combined, axis=1)
     d_mean_var = jnp.var(combined, axis=1, ddof=1) / n
     psi = 0.0
-    for w, z, t in zip(weights, paths, tangents, strict=True):
+    for w, z, t in zip(cov_weights, paths, tangents, strict=True):
         f = z - jnp.mean(z, axis=0)
         tc = t - jnp.mean(t, axis=1, keepdims=True)
         tf = jnp.einsum("apni,pnj->apnij", tc, f)
@@ -157,6 +162,22 @@ def coupling_solver(solver):
     return solver
 
 
+def with_tangents(fn: Callable[[StochasticSystem], Any], system: StochasticSystem, wrt: tuple[str, ...]):
+    """``(fn(system), tangents)``: with parameter names ``wrt``, ``∂fn/∂θ_a`` by forward mode (``jax.jacfwd``, the
+    parameters replaced through ``system.replace_params``) stacked on a leading axis ``a`` of every output leaf;
+    ``None`` without ``wrt``."""
+    if not wrt:
+        return fn(system), None
+
+    def both(*theta):
+        value = fn(system.replace_params(**dict(zip(wrt, theta, strict=True))))
+        return value, value
+
+    values = tuple(jnp.asarray(getattr(system.params, name)) for name in wrt)
+    d, value = jax.jacfwd(both, argnums=tuple(range(len(wrt))), has_aux=True)(*values)
+    return value, jax.tree.map(lambda _, per_parameter: jnp.stack(per_parameter), value, d)
+
+
 def coupled_paths(
     system: StochasticSystem,
     y0,
@@ -178,14 +199,13 @@ def coupled_paths(
     path of step ``brownian_dt``; with ``antithetic``, then the same for the reflected paths.  With parameter names
     ``wrt``, also their tangents ``(len(wrt), n_paths, n, k)`` (forward mode); else an empty list."""
     systems = (system, reflected(system)) if antithetic else (system,)
-    values = tuple(jnp.asarray(getattr(system.params, name)) for name in wrt)
     out, tangents = [], []
     for s in systems:
         for dt in dts:
 
-            def per_path(*theta, s=s, dt=dt):
+            def per_path(solved: StochasticSystem, dt=dt):
                 ens = simulate(
-                    s.replace_params(**dict(zip(wrt, theta, strict=True))) if wrt else s,
+                    solved,
                     y0,
                     key,
                     n_paths=n_paths,
@@ -200,14 +220,10 @@ def coupled_paths(
                 assert ens.paths is not None
                 return ens.paths
 
+            z, t = with_tangents(per_path, s, wrt)
+            out.append(z)
             if wrt:
-                d, z = jax.jacfwd(lambda *theta: (per_path(*theta),) * 2, argnums=tuple(range(len(wrt))), has_aux=True)(
-                    *values
-                )
-                out.append(z)
-                tangents.append(jnp.stack(d))
-            else:
-                out.append(per_path())
+                tangents.append(t)
     return out, tangents
 
 
