@@ -8,6 +8,7 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 
 
 import gc  # noqa: E402
+import os  # noqa: E402
 
 import equinox as eqx  # noqa: E402
 import pytest  # noqa: E402
@@ -20,3 +21,9 @@ def _release_compiled_programs():
     jax.clear_caches()
     eqx.clear_caches()
     gc.collect()
+
+
+def pytest_xdist_auto_num_workers(config):
+    """``-n auto`` (pyproject's addopts): one worker per available core, at most 4 (a worker peaks near 4 GB)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return max(1, min(cores, 4))

@@ -1,5 +1,8 @@
 """nhsde.fit: recovery of ε and ν on synthetic data, calibration of the reported errors, bad input."""
 
+import warnings
+
+import diffrax as dfx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -52,6 +55,32 @@ def closed_form_of(i):
     return fn
 
 
+def ball_euler_moments(p, ts, dt):
+    """(mean, cov) of (x, u_x) of the Euler–Maruyama chain from rest, exactly: K ← A K Aᵀ + Q per step.
+
+    With A = [[1, dt], [0, 1 − 2ε dt]] and Q = diag(0, νδ² dt) (S0 (3.1) per axis); ``ts`` on the step grid.
+    """
+    steps = np.round(np.asarray(ts) / dt).astype(int)
+    a = jnp.array([[1.0, dt], [0.0, 1.0 - 2.0 * p.eps * dt]])
+    q = jnp.array([[0.0, 0.0], [0.0, p.nu * p.delta**2 * dt]])
+
+    def step(cov, _):
+        cov = a @ cov @ a.T + q
+        return cov, cov
+
+    _, covs = jax.lax.scan(step, jnp.zeros((2, 2)), length=int(steps[-1]))
+    return jnp.zeros((len(steps), 2)), covs[steps - 1]
+
+
+def statistics_jacobian(fn, params, ts, vary):
+    """``∂s/∂θ (S, p)`` of the statistic vector of ``fn(params, ts) -> (mean, cov)`` in the parameters ``vary``."""
+
+    def s(theta):
+        return fit.statistic_vector(*fn(params.replace(**dict(zip(vary, theta))), ts))
+
+    return np.asarray(jax.jacfwd(s)(jnp.asarray([getattr(params, n) for n in vary])))
+
+
 def within_two_se(result, truth):
     z = (result.values - np.asarray(truth)) / result.se
     assert result.converged, result
@@ -59,16 +88,100 @@ def within_two_se(result, truth):
     return z
 
 
-def test_ball_fit_through_simulation_recovers_eps_and_nu():
+@pytest.fixture(scope="module")
+def ball_simulated_fit():
+    """``(observed, model, start, result)``: the ball's (ε, ν) fitted by Euler simulation, 8 times of (x, u_x)."""
     # Data and model share the solver and step, so the model's discretisation is the data's.
     ts, paths = ball_data(jax.random.key(11), 2048, solver="euler")
     observed = fit.Observations.from_paths(ts, paths, NAMES)
     start = BallOnVibratingPlane(eps=0.3, nu=0.5).build()
     model = fit.Simulated(jnp.zeros(4), jax.random.key(12), n_paths=2048, steps=0.02, solver="euler")
-    result = fit.estimate(start, observed, model, vary=("eps", "nu"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # 2048 model paths: G's Monte-Carlo error (≈ 6 %) raises no warning
+        result = fit.estimate(start, observed, model, vary=("eps", "nu"))
+    return observed, model, start, result
+
+
+def test_ball_fit_through_simulation_recovers_eps_and_nu(ball_simulated_fit):
+    *_, result = ball_simulated_fit
     within_two_se(result, (BALL_EPS, BALL_NU))
     # χ² of a model that fits: below its 99.9 % quantile.
     assert result.chi2 < stats.chi2.ppf(0.999, result.dof), result
+
+
+def test_simulated_jacobian_standard_errors_are_honest(ball_simulated_fit):
+    """G = ∂s/∂θ of the simulated fit against the exact G of the Euler chain: z = ΔG/se(G) ~ N(0, 1).
+
+    The reference is the Euler–Maruyama chain's own exact moments at the same dt and θ̂, so the comparison
+    has no discretisation bias (against the continuous closed form, Euler's bias at dt = 0.02 reaches
+    ≈ 2.5 se(G) here).  The 80 entries (5 statistics × 8 times × 2 parameters) are correlated across the
+    times of one path set, so mean z² is held to the χ² band of a pessimistic 10 independent values (one
+    per statistic and parameter, as if the 8 times were one): the 0.1 % and 99.9 % quantiles of χ²(10)/10.
+    """
+    observed, model, start, result = ball_simulated_fit
+    ts = tuple(float(t) for t in observed.ts)
+    vary = ("eps", "nu")
+    params = start.params.replace(**result.params)
+    # the standard errors come from the very paths (and layout) of the fitted Jacobian; strong float64
+    # parameters, as estimate passes them, reuse its compiled program
+    fitted = start.replace_params(**dict(zip(vary, jnp.asarray(result.values))))
+    g, g_se = model.sensitivities(fitted, ts, NAMES, vary)
+    np.testing.assert_allclose(g, result.jacobian, rtol=1e-10, atol=1e-12)
+    np.testing.assert_array_equal(g_se, result.jacobian_se)
+    assert result.jacobian.shape == result.jacobian_se.shape == (40, 2)
+
+    exact = statistics_jacobian(lambda p, t: ball_euler_moments(p, t, 0.02), params, jnp.asarray(ts), vary)
+    # the Euler chain's moments are near the closed form's (a check of ball_euler_moments itself)
+    closed = statistics_jacobian(ball_closed_form, params, jnp.asarray(ts), vary)
+    np.testing.assert_allclose(exact, closed, rtol=0.05, atol=0.02)
+    noisy = result.jacobian_se > 0
+    assert noisy.sum() == 80  # every entry is a Monte-Carlo estimate, the zero means' derivatives included
+    z = (result.jacobian - exact)[noisy] / result.jacobian_se[noisy]
+    lo, hi = stats.chi2.ppf([0.001, 0.999], 10) / 10
+    assert np.max(np.abs(z)) < 4.5, z
+    assert lo < np.mean(z**2) < hi, (np.mean(z**2), lo, hi)
+    # with 2048 paths the information of each parameter is known to a few per cent, and the table says so
+    rel = result.jacobian_relative_se
+    assert np.all((rel > 0.01) & (rel < 0.15)), rel
+    assert "MC err" in str(result)
+
+
+def test_too_few_model_paths_warn(ball_simulated_fit):
+    """16 model paths for the 2048 observed: ∂s/∂θ is too noisy (relative errors ≈ 0.5–0.8 per parameter)."""
+    observed, *_ = ball_simulated_fit
+    start = BallOnVibratingPlane(eps=BALL_EPS, nu=BALL_NU).build()
+    model = fit.Simulated(jnp.zeros(4), jax.random.key(14), n_paths=16, steps=0.1)
+    # one optimizer step from the truth: the warning concerns the final Jacobian, not the search
+    with pytest.warns(UserWarning, match="relative Monte-Carlo error of ∂s/∂(eps|nu) is .*use more n_paths"):
+        result = fit.estimate(start, observed, model, max_steps=1)
+    assert np.all(result.jacobian_relative_se > 0.3), result.jacobian_relative_se  # the warning's threshold
+
+
+def test_exact_models_have_exact_jacobians(ball_simulated_fit):
+    """ClosedForm and MomentEquations: zero Monte-Carlo error of ∂s/∂θ, no warning, no column for it."""
+    observed, *_ = ball_simulated_fit  # the calibration test's times and model: its compiled program
+    ts = tuple(float(t) for t in observed.ts)
+    start = BallOnVibratingPlane(eps=0.5, nu=1.0).build()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        result = fit.estimate(start, observed, fit.ClosedForm(ball_closed_form))
+    assert result.jacobian_se is not None and result.jacobian_se.shape == (40, 2)
+    assert np.all(result.jacobian_se == 0) and np.all(result.jacobian_relative_se == 0)
+    assert "MC err" not in str(result)
+    params = start.params.replace(**result.params)
+    exact = statistics_jacobian(ball_closed_form, params, jnp.asarray(ts), ("eps", "nu"))
+    np.testing.assert_allclose(result.jacobian, exact, rtol=1e-10)
+    moments = fit.MomentEquations(jnp.zeros(4), dt=0.1, order=1)
+    np.testing.assert_array_equal(moments.jacobian_se(start, ts, NAMES, ("eps", "nu")), np.zeros((40, 2)))
+
+
+def test_jacobian_error_without_forward_mode_is_nan():
+    """diffrax's SRA1 with its default scan has no JVP: the errors are unknown, said so, and NaN."""
+    model = fit.Simulated(jnp.zeros(4), jax.random.key(16), n_paths=64, steps=0.5, solver=dfx.SRA1())
+    system = BallOnVibratingPlane(eps=BALL_EPS, nu=BALL_NU).build()
+    with pytest.warns(UserWarning, match="needs forward mode"):
+        se = model.jacobian_se(system, (1.0,), NAMES, ("eps",))
+    assert se.shape == (5, 1) and np.all(np.isnan(se))
 
 
 def test_sleigh_fit_through_simulation_recovers_eps_and_nu():
@@ -185,6 +298,7 @@ def test_moment_equation_fit_equals_the_closed_form_fit_for_the_linear_ball():
     moments = fit.estimate(start, observed, fit.MomentEquations(jnp.zeros(4), dt=0.1, order=1))
     np.testing.assert_allclose(moments.values, exact.values, rtol=1e-6)
     np.testing.assert_allclose(moments.se, exact.se, rtol=1e-5)
+    assert np.all(moments.jacobian_se == 0)
     within_two_se(moments, (BALL_EPS, BALL_NU))
 
 

@@ -281,6 +281,7 @@ def test_cli_simulate_config_then_fit(tmp_path, capsys):
     assert res.attrs["format"] == "nhsde-fit" and res.attrs["converged"] == 1
     assert res.attrs["observed_from_trajectories"] == 1
     z = (res["estimate"].values - np.array([0.8, 1.5])) / res["se"].values
+    assert np.all((res["jacobian_relative_se"].values > 0) & (res["jacobian_relative_se"].values < 0.3))
     assert np.all(np.abs(z) <= 2), z
     assert json.loads(res.attrs["data_config"])["seed"] == 5
 

@@ -19,6 +19,16 @@ Uncertainty: with ``G = ∂s/∂θ`` at ``θ̂`` and the Fisher information
 the second term being the Monte-Carlo noise ``Σ_model`` of a simulated model
 (about ``H⁻¹ n_obs/n_sim``; zero for moment equations and closed forms).  ``χ² = rᵀ(Σ_obs + Σ_model)⁻¹ r``
 with ``S − p`` degrees of freedom tests whether the model fits at all.
+
+A simulated ``G`` is itself a Monte-Carlo estimate (pathwise, same key), with
+standard errors ``se(G)`` from :func:`~nhsde.statistics.moment_sensitivities`.
+With ``W = L⁻¹`` (``Σ_obs = L Lᵀ``), the relative error of the information about
+parameter ``a``,
+
+    ρ_a = ‖W se(G)_a‖ / ‖W G_a‖        (columns ``a``),
+
+is ``FitResult.jacobian_relative_se``; the formula for ``Cov(θ̂)`` ignores it, and
+:func:`estimate` warns where ``ρ_a > 0.3`` (more model paths shrink it as ``1/√n_paths``).
 """
 
 from __future__ import annotations
@@ -26,7 +36,9 @@ from __future__ import annotations
 import abc
 import dataclasses
 import functools
+import warnings
 from collections.abc import Callable
+from typing import Any
 
 import diffrax as dfx
 import equinox as eqx
@@ -49,6 +61,9 @@ from ._observations import (
 
 __all__ = ["AbstractStatisticsModel", "ClosedForm", "FitResult", "MomentEquations", "Simulated", "estimate"]
 
+_MAX_JACOBIAN_RELATIVE_SE = 0.3
+"""Above this relative Monte-Carlo error of a column of ``G = ∂s/∂θ``, :func:`estimate` warns."""
+
 
 class AbstractStatisticsModel(eqx.Module):
     """Model means and covariances of named components at given times."""
@@ -60,6 +75,15 @@ class AbstractStatisticsModel(eqx.Module):
     @abc.abstractmethod
     def noise_covariance(self, system: StochasticSystem, ts: tuple[float, ...], names: tuple[str, ...]) -> np.ndarray:
         """Covariance of the model's own statistic vector (its Monte-Carlo error)."""
+
+    def jacobian_se(
+        self, system: StochasticSystem, ts: tuple[float, ...], names: tuple[str, ...], vary: tuple[str, ...]
+    ) -> np.ndarray:
+        """Monte-Carlo standard errors ``(S, p)`` of ``∂s/∂θ`` (``s``: the statistic vector, ``θ``: ``vary``).
+
+        Zero here: a model without Monte-Carlo noise has an exact Jacobian.
+        """
+        return np.zeros((statistic_size(len(ts), len(names)), len(vary)))
 
 
 def _save_grid(ts, t0: float, model: str) -> np.ndarray:
@@ -102,12 +126,10 @@ class Simulated(AbstractStatisticsModel):
     batching: Batching | None = eqx.field(static=True, default=None)
     t0: float = eqx.field(static=True, default=0.0)
 
-    def _run(self, system, ts, names, paths):
+    def _options(self, ts, names, paths: bool) -> tuple[np.ndarray, dict[str, Any]]:
+        """Indices of ``ts`` on the save grid and the keyword arguments of the run (``simulate``'s)."""
         index = _save_grid(ts, self.t0, "Simulated")
-        ens = simulate(
-            system,
-            self.y0,
-            self.key,
+        options = dict(
             n_paths=self.n_paths,
             t0=self.t0,
             t1=float(ts[-1]),
@@ -116,7 +138,42 @@ class Simulated(AbstractStatisticsModel):
             batching=self.batching,
             save=Save(names=names, n=int(index[-1]) + 1, paths=paths),
         )
-        return ens, index
+        return index, options
+
+    def _run(self, system, ts, names, paths):
+        index, options = self._options(ts, names, paths)
+        return simulate(system, self.y0, self.key, **options), index
+
+    def sensitivities(self, system, ts, names, vary) -> tuple[np.ndarray, np.ndarray]:
+        """``(∂s/∂θ, its standard errors)``, both ``(S, p)``, from the same paths as :meth:`moments`.
+
+        :func:`~nhsde.statistics.moment_sensitivities` (per-path tangents, forward mode); its
+        Jacobian equals ``jax.jacfwd`` of :meth:`moments`' statistic vector to rounding.
+        """
+        from ..statistics import moment_sensitivities
+
+        index, options = self._options(ts, names, paths=False)
+        sens = moment_sensitivities(system, self.y0, self.key, wrt=tuple(vary), **options)
+
+        def columns(d_mean, d_cov):
+            cols = [statistic_vector(d_mean[a][index], d_cov[a][index]) for a in range(len(vary))]
+            return np.stack([np.asarray(c, np.float64) for c in cols], axis=-1)
+
+        return columns(sens.d_mean, sens.d_cov), columns(sens.d_mean_se, sens.d_cov_se)
+
+    def jacobian_se(self, system, ts, names, vary):
+        try:
+            return self.sensitivities(system, ts, names, vary)[1]
+        except TypeError as e:  # as in _statistics_jacobian: a solver without forward mode
+            if "custom_vjp" not in str(e):
+                raise
+        warnings.warn(
+            f"Simulated: the Monte-Carlo error of ∂s/∂θ needs forward mode, which solver={self.solver!r} lacks "
+            "(diffrax's stochastic Runge–Kutta solvers have it with scan_kind='lax'); it is reported as NaN.",
+            UserWarning,
+            stacklevel=3,
+        )
+        return np.full((statistic_size(len(ts), len(names)), len(vary)), np.nan)
 
     def moments(self, system, ts, names):
         ens, index = self._run(system, ts, names, paths=False)
@@ -264,6 +321,9 @@ class FitResult:
 
     ``history[i] = (loss, *values)`` at optimizer step ``i``; ``chi2`` with ``dof``
     degrees of freedom measures the misfit (``chi2 ≈ dof`` when the model fits).
+    ``jacobian`` is ``G = ∂s/∂θ (S, p)`` at ``values``, ``jacobian_se`` its Monte-Carlo standard errors
+    (zero for an exact model) and ``whitening`` ``W = L⁻¹`` with ``Σ_obs = L Lᵀ``;
+    :attr:`jacobian_relative_se` combines them.
     """
 
     names: tuple[str, ...]
@@ -275,19 +335,36 @@ class FitResult:
     steps: int
     converged: bool
     history: np.ndarray
+    jacobian: np.ndarray | None = None
+    jacobian_se: np.ndarray | None = None
+    whitening: np.ndarray | None = None
 
     @property
     def se(self) -> np.ndarray:
         return np.sqrt(np.diag(self.cov))
 
     @property
+    def jacobian_relative_se(self) -> np.ndarray:
+        """Per parameter ``‖W se(G)_a‖ / ‖W G_a‖``: the relative Monte-Carlo error of its information.
+
+        Zero for an exact model; NaN where the errors are unknown.
+        """
+        if self.jacobian is None or self.jacobian_se is None or self.whitening is None:
+            return np.full(len(self.names), np.nan)
+        norm = functools.partial(np.linalg.norm, axis=0)
+        return norm(self.whitening @ self.jacobian_se) / norm(self.whitening @ self.jacobian)
+
+    @property
     def params(self) -> dict[str, float]:
         return {n: float(v) for n, v in zip(self.names, self.values)}
 
     def __str__(self):
-        rows = [f"{'parameter':<12}{'estimate':>14}{'std. error':>14}{'start':>12}"]
+        rel = self.jacobian_relative_se
+        noisy = bool(np.any(rel > 0))  # a simulated model: show the Monte-Carlo error of ∂s/∂θ
+        rows = [f"{'parameter':<12}{'estimate':>14}{'std. error':>14}{'start':>12}" + (f"{'MC err ∂s':>12}" * noisy)]
         rows += [
-            f"{n:<12}{v:>14.6g}{s:>14.3g}{i:>12.4g}" for n, v, s, i in zip(self.names, self.values, self.se, self.init)
+            f"{n:<12}{v:>14.6g}{s:>14.3g}{i:>12.4g}" + (f"{100 * r:>11.1f}%" * noisy)
+            for n, v, s, i, r in zip(self.names, self.values, self.se, self.init, rel)
         ]
         rows.append(
             f"chi2 = {self.chi2:.2f} on {self.dof} degrees of freedom; {self.steps} optimizer steps"
@@ -340,7 +417,12 @@ def estimate(
 
     Returns:
         a :class:`FitResult`: ``values``, their covariance ``cov`` and ``se``, ``chi2`` on ``dof`` degrees of
-        freedom, ``converged`` and the ``history``.
+        freedom, ``converged``, the ``history``, and the Jacobian ``∂s/∂θ`` with its Monte-Carlo errors
+        (``jacobian``, ``jacobian_se``, ``jacobian_relative_se``).
+
+    Warns:
+        UserWarning: where the relative Monte-Carlo error of a column of ``∂s/∂θ`` exceeds
+        0.3 (a :class:`Simulated` model with too few paths).
 
     Examples:
         ``ν`` from one measured variance ``k_xx(3) = 2.7 ± 0.11`` of the ball's position, S0 (3.1), through its
@@ -428,7 +510,8 @@ def estimate(
     cov = h_inv + h_inv @ w_g.T @ cov_model @ w_g @ h_inv
     r = np.asarray(problem.statistics(theta), np.float64) - observed.statistics()
     chi2 = float(r @ np.linalg.solve(cov_obs + cov_model, r))
-    return FitResult(
+    g_se = np.asarray(model.jacobian_se(problem.system_at(theta), problem.ts, observed.names, vary), np.float64)
+    result = FitResult(
         names=vary,
         values=np.asarray(theta, np.float64),
         cov=0.5 * (cov + cov.T),
@@ -438,4 +521,17 @@ def estimate(
         steps=steps,
         converged=converged,
         history=np.asarray(history),
+        jacobian=g,
+        jacobian_se=g_se,
+        whitening=whiten,
     )
+    for name, rel in zip(vary, result.jacobian_relative_se):
+        if rel > _MAX_JACOBIAN_RELATIVE_SE:
+            warnings.warn(
+                f"estimate: the relative Monte-Carlo error of ∂s/∂{name} is {rel:.2f} (> {_MAX_JACOBIAN_RELATIVE_SE}), "
+                f"so the information about {name} and its standard error are unreliable; "
+                "use more n_paths in the model.",
+                UserWarning,
+                stacklevel=2,
+            )
+    return result

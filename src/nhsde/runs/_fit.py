@@ -1,7 +1,8 @@
 """Fit runs: :func:`run_fit` fits parameters to a run file through simulation, writing a netCDF fit file.
 
-A fit file (``format = "nhsde-fit"``) holds ``estimate``, ``se``, ``start`` over
-``parameter``, ``cov`` over ``parameter × parameter2``, the optimiser's
+A fit file (``format = "nhsde-fit"``) holds ``estimate``, ``se``, ``start`` and
+``jacobian_relative_se`` (the Monte-Carlo error of the model's ``∂s/∂θ``, see
+:func:`~nhsde.fit.estimate`) over ``parameter``, ``cov`` over ``parameter × parameter2``, the optimiser's
 ``history`` over ``step × column`` (``loss`` and the parameters), and as
 attributes the fit configuration (JSON), ``chi2``, ``dof``, ``steps``,
 ``converged``, the data file with its configuration and git revision, the
@@ -94,6 +95,7 @@ def _fit(config: RunConfig) -> tuple[FitResult, xr.Dataset]:
             "se": (("parameter",), result.se),
             "cov": (("parameter", "parameter2"), result.cov),
             "start": (("parameter",), result.init),
+            "jacobian_relative_se": (("parameter",), result.jacobian_relative_se),
             "history": (("step", "column"), result.history),
         },
         coords={"parameter": list(result.names), "parameter2": list(result.names), "column": ["loss", *result.names]},
