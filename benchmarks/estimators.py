@@ -1,6 +1,6 @@
 """Drift statistics at a requested accuracy for the least work: plain Monte Carlo against the new estimators.
 
-    python benchmarks/estimators.py [--quick] [--scenes ball,sleigh,chaplygin-ball,body]
+    python benchmarks/estimators.py [--quick] [--scenes ball,sleigh,chaplygin-ball,body] [--out FILE]
 
 For each scene and statistic with an exact value (ball: K_xx(t1), S0 (3.1); sleigh:
 E[H](t1) = H0 e^{−4εt1} + ν(1 − e^{−4εt1})/(4ε); Chaplygin's ball: the stationary
@@ -193,10 +193,10 @@ def fit_bias(hs, errors, ses, p):
     return float(np.sum(w * errors * hs**p) / np.sum(w * hs ** (2 * p))), bool(np.any(np.abs(errors) > 3 * ses))
 
 
-def cheapest(t1, cost_per_step, sigma2, c, p, eps, steps_per_h=1.0):
-    """Cheapest (seconds, h, N) with C²h^{2p} + σ²/N ≤ ε², h = t1/n."""
+def cheapest(t1, cost_per_step, sigma2, c, p, eps, h_max, steps_per_h=1.0):
+    """Cheapest (seconds, h, N) with C²h^{2p} + σ²/N ≤ ε², h = t1/n ≤ h_max (the bias model is measured up to h_max)."""
     best = (math.inf, None, None)
-    for n in range(1, 1 << 16):
+    for n in range(math.ceil(t1 / h_max - 1e-9), 1 << 16):
         h = t1 / n
         room = eps**2 - (c * h**p) ** 2
         if room <= 0:
@@ -316,12 +316,12 @@ def run_case(case, args):
     for eps in targets:
         best_plain = None
         for solver, m in models.items():
-            sec, h, n = cheapest(t1, costs[solver], m["sigma2"], m["c"], m["p"], eps)
+            sec, h, n = cheapest(t1, costs[solver], m["sigma2"], m["c"], m["p"], eps, case["dts"][0])
             plain.append(dict(eps=eps, solver=solver, seconds=sec, dt=h, n_paths=n))
             if best_plain is None or sec < best_plain["seconds"]:
                 best_plain = plain[-1]
         for solver, m in extrap.items():
-            sec, h, n = cheapest(t1, m["cost"], m["sigma2"], m["c"], m["p"], eps, steps_per_h=3.0)
+            sec, h, n = cheapest(t1, m["cost"], m["sigma2"], m["c"], m["p"], eps, case["dts"][0], steps_per_h=3.0)
             ex_rows.append(dict(eps=eps, solver=solver, seconds=sec, dt=h, n_paths=n))
         print(
             f"  ε = {eps:.3g} ({eps / abs(exact):.0e} rel.): best plain MC {best_plain['solver']} "
@@ -425,6 +425,7 @@ def main():
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--piece-paths", type=int, default=65536, help="MLMC paths per run on level 0")
     parser.add_argument("--reference-paths", type=int, default=2**18)
+    parser.add_argument("--out", help="the JSON to write (default results/estimators.json, _quick with --quick)")
     args = parser.parse_args()
     args.targets = [3e-2, 1e-2, 3e-3] if args.quick else [3e-2, 1e-2, 3e-3, 1e-3]
     if args.quick:
@@ -450,7 +451,7 @@ def main():
     )
     OUT.mkdir(exist_ok=True)
     suffix = "_quick" if args.quick else ""
-    path = OUT / f"estimators{suffix}.json"
+    path = pathlib.Path(args.out) if args.out else OUT / f"estimators{suffix}.json"
     path.write_text(json.dumps(dict(machine=machine, args=vars(args), cases=results), indent=2, default=str))
     print(f"wrote {path}")
 
