@@ -23,7 +23,7 @@ LAWS = {
 
 @eqx.filter_jit
 def _block_increments(driver, keys, step, dt, substeps):
-    return jax.vmap(lambda k: driver.block_increment(k, step, dt, (2,), substeps, None))(keys)
+    return jax.vmap(lambda k: driver.block_increment(k, jnp.int32(0), step, dt, (2,), substeps, None))(keys)
 
 
 def increments(driver, n_blocks, dt=0.05, substeps=4, step=3):

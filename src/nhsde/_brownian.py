@@ -64,8 +64,11 @@ class AbstractDriver(eqx.Module):
         return jnp.broadcast_to(jnp.asarray(self.variance_rate()).astype(dtype), (noise_dim,))
 
     @abc.abstractmethod
-    def block_increment(self, key, k0, dt, shape, substeps, levy_area) -> PyTree:
+    def block_increment(self, key, block, k0, dt, shape, substeps, levy_area) -> PyTree:
         """Increments of the block's ``BLOCK`` lanes over fixed step ``k0``, leading axis ``BLOCK``.
+
+        ``key`` is the block key ``fold_in(ensemble key, block)``; ``block`` (an ``int32``
+        scalar) is the global block index, so lane ``l`` is path ``block·BLOCK + l``.
 
         A ``(BLOCK, *shape)`` array, or a ``diffrax.SpaceTimeLevyArea`` of such
         arrays when ``levy_area`` asks for it.
@@ -80,7 +83,8 @@ class Wiener(AbstractDriver):
     def variance_rate(self):
         return jnp.ones(())
 
-    def block_increment(self, key, k0, dt, shape, substeps, levy_area):
+    def block_increment(self, key, block, k0, dt, shape, substeps, levy_area):
+        del block  # the block key alone defines the draws
         # PlatenWeak2's three-point or Gaussian increments:
         if isinstance(levy_area, type) and issubclass(levy_area, WeakIncrement):
             return levy_area.block_draw(key, k0, dt, (BLOCK,) + shape, substeps)

@@ -79,6 +79,7 @@ def _fixed_chunk(system, params, needs: SolverNeeds, plan: _Plan, y0, key, first
     """Observations ``(chunk, n_save, k)``, failure flags and meter state of one chunk, fixed steps."""
     solver = needs.solver
     nb = plan.chunk // BLOCK
+    blocks = (first_path // BLOCK + chunk_index * nb + jnp.arange(nb)).astype(jnp.int32)  # global block indices
     keys = block_keys(key, first_path // BLOCK + chunk_index * nb, nb)
     dtype = y0.dtype
     t0 = jnp.asarray(plan.t0, dtype)
@@ -102,22 +103,22 @@ def _fixed_chunk(system, params, needs: SolverNeeds, plan: _Plan, y0, key, first
         # reverse-mode cotangents stay finite (zero), so gradients equal forward mode's
         return jnp.where(good, y1, y), good
 
-    def block_step(y, k, block_key):
+    def block_step(y, k, block_key, block):
         # one draw per block; each lane gets its row through vmap
         increments = system.noise.block_increment(
-            block_key, k, base_dt, (system.noise_dim,), plan.substeps, needs.levy_area
+            block_key, block, k, base_dt, (system.noise_dim,), plan.substeps, needs.levy_area
         )
         t = t0 + k.astype(dtype) * dt
         return jax.vmap(lane_step, in_axes=(0, None, 0))(y, t, increments)
 
-    step = jax.vmap(block_step, in_axes=(0, None, 0))
+    step = jax.vmap(block_step, in_axes=(0, None, 0, 0))
 
     def interval(carry, j):
         y, ok, meter_state = carry
 
         def body(state, _):
             y, ok, k = state
-            y1, good = step(y, k, keys)
+            y1, good = step(y, k, keys, blocks)
             return (y1, ok & good, k + 1), None
 
         # the step counter rides in the carry: no per-step arrays, memory independent of steps
@@ -131,7 +132,7 @@ def _fixed_chunk(system, params, needs: SolverNeeds, plan: _Plan, y0, key, first
     y = y0.reshape(nb, BLOCK, -1)
     # The solvers used here keep no state between steps; init only runs diffrax's checks.
     first = system.noise.block_increment(
-        keys[0], jnp.int32(0), base_dt, (system.noise_dim,), plan.substeps, needs.levy_area
+        keys[0], blocks[0], jnp.int32(0), base_dt, (system.noise_dim,), plan.substeps, needs.levy_area
     )
     solver.init(terms(jax.tree_util.tree_map(lambda a: a[0], first), t0), 0.0 * dt, dt, y[0, 0], params)
     ok = jnp.all(jnp.isfinite(y), axis=-1)

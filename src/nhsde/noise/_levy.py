@@ -207,7 +207,8 @@ class CompoundPoisson(AbstractDriver, AbstractParameters):
         mu = jnp.asarray(self.intensity, _count_dtype()) * jnp.asarray(dt, _count_dtype())
         return _poisson_survival(mu, self.max_jumps)[..., -1]
 
-    def block_increment(self, key, k0, dt, shape, substeps, levy_area):
+    def block_increment(self, key, block, k0, dt, shape, substeps, levy_area):
+        del block  # the block key alone defines the draws
         driver = validated(self)
         law = driver.law
         dtype = dt.dtype
@@ -257,9 +258,9 @@ class Levy(AbstractDriver):
         """``1 + λ E[c²]`` per channel (1.4)."""
         return 1.0 + self.jumps.variance_rate()
 
-    def block_increment(self, key, k0, dt, shape, substeps, levy_area):
-        wiener = Wiener().block_increment(key, k0, dt, shape, substeps, levy_area)
-        return wiener + self.jumps.block_increment(key, k0, dt, shape, substeps, levy_area)
+    def block_increment(self, key, block, k0, dt, shape, substeps, levy_area):
+        wiener = Wiener().block_increment(key, block, k0, dt, shape, substeps, levy_area)
+        return wiener + self.jumps.block_increment(key, block, k0, dt, shape, substeps, levy_area)
 
 
 def driver_intensity(driver: AbstractDriver, noise_dim: int, dtype=None) -> Array:

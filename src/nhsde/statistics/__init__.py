@@ -9,7 +9,8 @@
 - Statistics at a requested accuracy for less work: :func:`extrapolate`
   (Richardson–Romberg / Talay–Tubaro), :func:`multilevel_monte_carlo` (Giles),
   :func:`antithetic` paths, :func:`control_variate` (the linearised system
-  driven by the same increments); :func:`to_accuracy` chooses among them from a
+  driven by the same increments), :func:`quasi_monte_carlo` (scrambled Sobol'
+  points through a Brownian bridge); :func:`to_accuracy` chooses among them from a
   pilot run for a requested RMSE.
 - Derivatives of simulated moments with their standard errors: :func:`moment_sensitivities`.
 - The Fokker–Planck equation on a grid (1 and 2 components):
@@ -50,6 +51,7 @@ from ._normal_approximation import (
     NormalApproximation as NormalApproximation,
     normal_approximation as normal_approximation,
 )
+from ._qmc import QuasiMonteCarloEstimate as QuasiMonteCarloEstimate, quasi_monte_carlo as quasi_monte_carlo
 from ._sensitivities import Sensitivities as Sensitivities, moment_sensitivities as moment_sensitivities
 from ._stationary import StationaryDensity as StationaryDensity, stationary_density as stationary_density
 from ._stationary_drift import StationaryDrift as StationaryDrift, stationary_drift as stationary_drift

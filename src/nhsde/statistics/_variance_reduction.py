@@ -46,8 +46,8 @@ class Antithetic(AbstractDriver):
     def variance_rate(self):
         return self.driver.variance_rate()
 
-    def block_increment(self, key, k0, dt, shape, substeps, levy_area):
-        inc = self.driver.block_increment(key, k0, dt, shape, substeps, levy_area)
+    def block_increment(self, key, block, k0, dt, shape, substeps, levy_area):
+        inc = self.driver.block_increment(key, block, k0, dt, shape, substeps, levy_area)
         if isinstance(inc, dfx.SpaceTimeLevyArea):
             return dfx.SpaceTimeLevyArea(dt=inc.dt, W=-inc.W, H=-inc.H)
         if isinstance(inc, WeakIncrement):

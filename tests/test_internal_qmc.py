@@ -1,0 +1,62 @@
+"""Internals of quasi-Monte Carlo: the Sobol' generator against SciPy, the scrambling's nets, and the Brownian
+bridge driver's increments."""
+
+import diffrax as dfx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy.stats import qmc
+
+from nhsde.statistics._qmc import _direction_numbers, _ScrambledSobol, scrambled_sobol, sobol_points
+
+
+def test_unscrambled_points_are_scipys():
+    # SciPy draws in Gray-code order: its point i is the direct-order point i ^ (i >> 1)
+    d, n = 7, 64
+    v = jnp.asarray(_direction_numbers(d))
+    i = np.arange(n)
+    x = sobol_points(v, jnp.zeros(d, jnp.uint32), jnp.asarray(i ^ (i >> 1), jnp.uint32), jnp.arange(d))
+    reference = qmc.Sobol(d, scramble=False, bits=32).random(n) * 2.0**32
+    np.testing.assert_array_equal(np.asarray(x, np.float64), reference)
+
+
+def test_scrambled_points_stratify_every_dimension():
+    # LMS + digital shift keeps the (0, k, 1)-net of each coordinate: one point per interval [i/N, (i+1)/N)
+    d, k = 40, 10
+    v, shift = scrambled_sobol(jax.random.key(5), d)
+    x = np.asarray(sobol_points(v, shift, jnp.arange(2**k, dtype=jnp.uint32), jnp.arange(d)))
+    for j in range(d):
+        assert len(np.unique(x[:, j] >> (32 - k))) == 2**k, j
+    # and the scrambling changes the points
+    unscrambled = sobol_points(
+        jnp.asarray(_direction_numbers(d)), jnp.zeros(d, jnp.uint32), jnp.arange(4), jnp.arange(d)
+    )
+    assert not np.array_equal(np.asarray(unscrambled), x[:4])
+
+
+def test_increments_have_the_wiener_law_and_sum_to_the_endpoint():
+    n_base, m, blocks = 16, 2, 64  # 4096 paths
+    driver = _ScrambledSobol(*scrambled_sobol(jax.random.key(2), n_base * m), n_base, m)
+    dt = jnp.float64(0.05)
+
+    def increments(substeps):
+        def one(block, k):
+            return driver.block_increment(None, block, k, dt, (m,), substeps, dfx.BrownianIncrement)
+
+        steps = jnp.arange(n_base // substeps, dtype=jnp.int32)
+        w = jax.vmap(jax.vmap(one, (None, 0)), (0, None))(jnp.arange(blocks, dtype=jnp.int32), steps)
+        return np.asarray(w).transpose(0, 2, 1, 3).reshape(blocks * 64, len(steps), m)
+
+    w = increments(1)
+    n = w.shape[0]
+    # tolerances of independent samples (the Sobol' points do better)
+    np.testing.assert_array_less(np.abs(w.mean(0)), 4 * np.sqrt(dt / n))
+    np.testing.assert_array_less(np.abs(w.var(0) / dt - 1), 4 * np.sqrt(2 / n))
+    # W(T) from the root of the bridge: the increments telescope to it
+    lanes = jnp.arange(64, dtype=jnp.uint32)
+    endpoint = jax.vmap(lambda b: driver._bridge(b, lanes, jnp.int32(n_base), dt))(jnp.arange(blocks, dtype=jnp.uint32))
+    endpoint = np.asarray(endpoint).reshape(n, m)
+    np.testing.assert_allclose(w.sum(1), endpoint, rtol=0, atol=1e-13)
+    np.testing.assert_array_less(np.abs(endpoint.var(0) / (n_base * dt) - 1), 4 * np.sqrt(2 / n))
+    # a step of two base steps is their sum: brownian_dt works on the same path
+    np.testing.assert_allclose(increments(2), w[:, 0::2] + w[:, 1::2], rtol=0, atol=1e-14)

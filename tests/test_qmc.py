@@ -1,0 +1,110 @@
+"""Randomised quasi-Monte Carlo (``nhsde.statistics.quasi_monte_carlo``): unbiasedness and honest errors on the
+ball against the Euler chain's exact moments, the variance reduction against plain Monte Carlo, chunking
+invariance, derivatives, and the refusals.  The generator and the driver: ``test_internal_qmc.py``."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import nhsde
+from nhsde.noise import CompoundPoisson, NormalJumps
+from nhsde.statistics import quasi_monte_carlo
+
+T1, DT, N_PATHS, REPLICATES = 1.0, 1 / 16, 4096, 16
+
+
+def euler_cov(eps, nu, delta, dt, n_steps):
+    """Exact covariance of (x, u_x) of the Euler chain of the ball from rest: K ← A K Aᵀ + Q per step."""
+    a = jnp.array([[1.0, dt], [0.0, 1.0 - 2.0 * eps * dt]])
+    q = jnp.array([[0.0, 0.0], [0.0, nu * delta**2 * dt]])
+    k = jnp.zeros((2, 2))
+    for _ in range(n_steps):
+        k = a @ k @ a.T + q
+    return k
+
+
+@pytest.fixture(scope="module")
+def ball():
+    scene = nhsde.scenes.BallOnVibratingPlane(eps=0.5, nu=1.0)
+    return scene.build(), scene.initial_state()
+
+
+@pytest.fixture(scope="module")
+def ball_qmc(ball):
+    system, y0 = ball
+    return quasi_monte_carlo(system, y0, jax.random.key(0), n_paths=N_PATHS, t1=T1, dt=DT, replicates=REPLICATES)
+
+
+def test_unbiased_with_honest_errors_and_far_smaller_than_monte_carlo(ball, ball_qmc):
+    system, y0 = ball
+    p = system.params
+    exact = euler_cov(p.eps, p.nu, p.delta, DT, round(T1 / DT))
+    r = ball_qmc
+    assert r.names == ("x", "y", "u_x", "u_y") and int(r.n_paths) == N_PATHS * REPLICATES
+    for axis in ((0, 2), (1, 3)):  # (x, u_x) and (y, u_y): the same law
+        cov = np.asarray(r.cov[-1])[np.ix_(axis, axis)]
+        se = np.asarray(r.cov_se[-1])[np.ix_(axis, axis)]
+        np.testing.assert_array_less(np.abs(cov - exact), 4 * se)
+    np.testing.assert_array_less(np.abs(r.mean[-1]), 4 * r.mean_se[-1])  # E = 0 exactly
+    mc = nhsde.simulate(system, y0, jax.random.key(1), n_paths=N_PATHS * REPLICATES, t1=T1, dt=DT)
+    # measured: the covariances' standard errors are 24–49× smaller than plain Monte Carlo's at the same paths
+    gain = np.asarray(mc.cov_se[-1] / r.cov_se[-1])
+    assert gain[0, 0] > 10 and gain[1, 1] > 10, gain
+
+
+def test_the_same_key_gives_bitwise_the_same_estimate_whatever_the_chunking(ball, ball_qmc):
+    system, y0 = ball
+    r = quasi_monte_carlo(
+        system,
+        y0,
+        jax.random.key(0),
+        n_paths=N_PATHS,
+        t1=T1,
+        dt=DT,
+        replicates=REPLICATES,
+        batching=nhsde.Batching(chunk_size=1024),
+    )
+    for name in ("mean", "cov", "mean_se", "cov_se"):
+        np.testing.assert_array_equal(getattr(r, name), getattr(ball_qmc, name))
+
+
+def test_derivatives_match_the_euler_chain(ball):
+    system, y0 = ball
+    p = system.params
+    r = quasi_monte_carlo(system, y0, jax.random.key(3), n_paths=1024, t1=T1, dt=DT, replicates=8, wrt=("eps", "nu"))
+    assert r.derivatives is not None and r.derivatives.wrt == ("eps", "nu")
+    exact = jax.jacfwd(lambda eps, nu: euler_cov(eps, nu, p.delta, DT, round(T1 / DT))[0, 0], argnums=(0, 1))(
+        p.eps, p.nu
+    )
+    d, se = np.asarray(r.derivatives.d_cov[:, -1, 0, 0]), np.asarray(r.derivatives.d_cov_se[:, -1, 0, 0])
+    np.testing.assert_array_less(np.abs(d - np.asarray(exact)), 4 * se)
+    assert np.all(se < 0.01 * np.abs(d))
+
+
+@pytest.mark.parametrize(
+    "change, named",
+    [
+        (dict(n_paths=1000), "n_paths=1000"),
+        (dict(n_paths=32), "n_paths=32"),
+        (dict(replicates=1), "replicates=1"),
+        (dict(dt=0.01), "dt=0.01: (t1 − t0)/dt = 100"),
+        (dict(dt=2.0**-12, t1=8.0), "dt=0.000244140625, t1=8.0"),
+        (dict(solver="sra1"), "solver='sra1'"),
+        (dict(dt=nhsde.AdaptiveSteps(dt=0.1)), "dt=AdaptiveSteps"),
+    ],
+)
+def test_bad_input_is_refused_naming_the_argument(ball, change, named):
+    system, y0 = ball
+    kwargs = dict(n_paths=64, t1=T1, dt=DT) | change
+    with pytest.raises((ValueError, TypeError), match=named.replace("(", r"\(").replace(")", r"\)")):
+        quasi_monte_carlo(system, y0, jax.random.key(0), **kwargs)
+
+
+def test_jumps_are_refused(ball):
+    system, y0 = ball
+    jumping = dataclasses.replace(system, noise=CompoundPoisson(law=NormalJumps(), intensity=1.0))
+    with pytest.raises(ValueError, match="system.noise=CompoundPoisson has jumps"):
+        quasi_monte_carlo(jumping, y0, jax.random.key(0), n_paths=64, t1=T1, dt=DT)
