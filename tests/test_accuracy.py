@@ -17,15 +17,23 @@ import nhsde
 from nhsde.noise import CompoundPoisson, NormalJumps
 from nhsde.runs import ConfigError, RunConfig, main
 from nhsde.scenes import BallOnVibratingPlane, ball_covariances
-from nhsde.statistics import to_accuracy
+from nhsde.statistics import QuasiMonteCarloEstimate, to_accuracy
 
 DELTA = 1 / 1.4
 BALL = BallOnVibratingPlane(eps=1.0, nu=1.0)
 Y0 = jnp.zeros(4)
 K_XX = float(ball_covariances(jnp.float64(1.0), 1.0, 1.0, DELTA)[0])
 # Euler on plain paths only, so that the few compiled programs are shared by every test here (the CLI's pilot
-# included); the control variate is exact on the linear ball and would make the accuracy test trivial.
-FAST = dict(t1=1.0, statistic=("cov", "x", "x"), solver="euler", antithetic=False, control_variate=False)
+# included); the control variate is exact on the linear ball and would make the accuracy test trivial.  Quasi-Monte
+# Carlo has tests of its own (its pilot compiles programs of its own; off here so that these stay fast).
+FAST = dict(
+    t1=1.0,
+    statistic=("cov", "x", "x"),
+    solver="euler",
+    antithetic=False,
+    control_variate=False,
+    quasi_monte_carlo=False,
+)
 
 
 def test_reaches_the_requested_rmse_on_the_ball():
@@ -59,6 +67,42 @@ def test_derivatives_with_standard_errors_on_the_ball():
         exact,
     )
     assert f"d/deps = {r.derivative[0]:.6g} ± " in r.report()
+
+
+def test_quasi_monte_carlo_is_priced_and_reaches_the_target_on_the_ball():
+    """The report lists quasi-Monte Carlo (Euler) with a finite predicted work, its cost ratio κ measured, its pilot
+    counted; run (forced: the alternative's own run), K_xx(1) is within 3 target RMSEs of the closed form (Chebyshev:
+    ≥ 89 % if its MSE ≤ ε²; the prediction assumes the Monte-Carlo rate, an upper bound), its standard error below
+    the target, and its derivatives in (ε, ν) within 4 SE (99.99 %) of the closed form's."""
+    eps = 0.08 * K_XX
+    wrt = ("eps", "nu")
+    r = to_accuracy(BALL.build(), Y0, jax.random.key(20), rmse=eps, wrt=wrt, **(FAST | dict(quasi_monte_carlo=True)))
+    qmc = next(a for a in r.alternatives if a.name == "quasi-Monte Carlo, euler")
+    assert math.isfinite(qmc.cost) and qmc.cost > 0 and qmc.run is not None, r.report()
+    assert "κ = " in qmc.note and qmc.pilot_work > 0 and r.pilot_work >= r.pilot[0].work + qmc.pilot_work
+    assert qmc.n_paths[0] % 16 == 0 and qmc.n_paths[0] // 16 >= 64 and (qmc.n_paths[0] // 16).bit_count() == 1
+    assert (1.0 / qmc.dt).is_integer() and int(1.0 / qmc.dt).bit_count() == 1
+    assert "quasi-Monte Carlo, euler" in r.report()
+    value, se, bias, work, result = qmc.run()
+    assert isinstance(result, QuasiMonteCarloEstimate) and result.replicates == 16
+    assert work == qmc.cost and bias == qmc.bias
+    assert abs(float(value) - K_XX) <= 3 * eps and 0 < float(se) <= eps, (value, se, K_XX, eps)
+    exact = jax.jacfwd(lambda th: ball_covariances(jnp.float64(1.0), th[0], th[1], DELTA)[0])(jnp.array([1.0, 1.0]))
+    assert result.derivatives is not None and result.derivatives.wrt == wrt
+    d, d_se = (np.asarray(a[:, -1, 0, 0]) for a in (result.derivatives.d_cov, result.derivatives.d_cov_se))
+    assert d.shape == d_se.shape == (2,) and np.all(d_se > 0)
+    assert np.all(np.abs(d - np.asarray(exact)) <= 4 * d_se), (d, d_se, exact)
+
+
+def test_quasi_monte_carlo_does_not_apply_off_a_power_of_two():
+    """``(t1 − t0)/dt = 3`` steps: quasi-Monte Carlo is listed as not applying, with the reason, and another
+    alternative reaches the target."""
+    eps = 0.2 * K_XX
+    r = to_accuracy(BALL.build(), Y0, jax.random.key(2), rmse=eps, dt=1 / 3, **(FAST | dict(quasi_monte_carlo=True)))
+    qmc = next(a for a in r.alternatives if a.name == "quasi-Monte Carlo, euler")
+    assert qmc.cost == math.inf and qmc.run is None and qmc.note.startswith("does not apply: "), qmc
+    assert "not a power of two" in qmc.note and "does not apply" in r.report()
+    assert r.choice != qmc.name and abs(r.value - K_XX) <= 3 * eps
 
 
 def test_relative_rmse_and_the_budget_guard():
@@ -161,10 +205,11 @@ def test_cli_rmse_prints_the_choice_and_value(capsys, tmp_path):
 
 @pytest.mark.slow
 def test_every_alternative_on_the_ball():
-    """The default set: Euler and weak2 (Gaussian), plain, extrapolated, multilevel, antithetic, and the control
-    variate, which is exact on the linear ball; the estimate is within 3 target RMSEs (Chebyshev: ≥ 89 %)."""
+    """The default set: Euler and weak2 (Gaussian), plain, extrapolated, multilevel, antithetic, quasi-Monte Carlo and
+    the control variate, which is exact on the linear ball; the estimate is within 3 target RMSEs (Chebyshev:
+    ≥ 89 %)."""
     eps = 0.05 * K_XX
     r = to_accuracy(BALL.build(), Y0, jax.random.key(3), t1=1.0, statistic=("cov", "x", "x"), rmse=eps)
-    assert len(r.alternatives) == 13 and all(math.isfinite(a.cost) for a in r.alternatives), r.report()
+    assert len(r.alternatives) == 14 and all(math.isfinite(a.cost) for a in r.alternatives), r.report()
     assert {p.solver for p in r.pilot} == {"euler", "weak2-gaussian"}
     assert r.choice == "control variate, euler" and abs(r.value - K_XX) <= 3 * eps

@@ -23,6 +23,11 @@ differences.  For a target RMSE ``ε`` it predicts the work (path-steps) of
   (run with this allocation fixed);
 - each of these with antithetic pairs (work doubled, the pair's variance);
 - a control variate, where :mod:`nhsde.statistics` provides one;
+- randomised quasi-Monte Carlo (:func:`quasi_monte_carlo`, Euler, 16 scramblings of a power of two
+  paths each), where ``(t1 − t0)/h₀`` is a power of two and the driver is continuous: its variance
+  from a pilot of 8 scramblings, its error assumed to fall only as ``N^{−1/2}`` beyond it (so its predicted work
+  is an upper bound where it converges faster), Euler's bias bound, and its work converted to Euler
+  path-steps by the measured ratio ``κ`` of its seconds per path-step to plain Euler Monte Carlo's;
 
 runs the cheapest and returns its value, standard error and bias estimate with
 the work done, pilot included, and a report of every alternative.  With ``wrt``
@@ -49,12 +54,14 @@ from .._brownian import BLOCK
 from .._ensemble import Save
 from .._misc import check_key, check_number, check_steps, is_concrete
 from .._options import AbstractSteps, Batching, FixedSteps
+from .._simulate import simulate
 from .._solvers import solver_needs
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
 from ._control_variate import control_variate as linearised_control_variate
 from ._extrapolation import coupled_paths, coupling_solver, extrapolate, paired_moments
 from ._multilevel import MultilevelEstimate, multilevel_monte_carlo
+from ._qmc import MAX_DIMENSION, quasi_monte_carlo as randomised_quasi_monte_carlo
 from ._sensitivities import check_wrt
 
 __all__ = ["AccuracyAlternative", "AccuracyResult", "to_accuracy"]
@@ -262,16 +269,15 @@ def _pilot(system, y0, key, cand: _Candidate, *, t0, t1, h0, levels, n_paths, sa
     opts: dict[str, Any] = dict(
         t0=t0, t1=t1, dts=dts, brownian_dt=dts[-1], solver=cand.solver, save=save, batching=batching
     )
-    start = time.perf_counter()
     paths, _ = coupled_paths(system, y0, key, n_paths=n_paths, antithetic=anti, **opts)
     jax.block_until_ready(paths)
-    seconds = time.perf_counter() - start
     n_sys = 2 if anti else 1
     work = float(n_paths * n_sys * sum(steps0 * 2**ell for ell in range(levels)))
+    rate = math.nan
     if timed:  # compiled now: time a second run of the same programs
         start = time.perf_counter()
         jax.block_until_ready(coupled_paths(system, y0, jr.fold_in(key, 1), n_paths=n_paths, antithetic=anti, **opts))
-        seconds = time.perf_counter() - start
+        rate = (time.perf_counter() - start) / work  # one run's seconds over one run's work
         work *= 2
     plain, refl = paths[:levels], paths[levels:]
     if not all(bool(jnp.all(jnp.isfinite(p))) for p in paths):
@@ -335,24 +341,34 @@ def _pilot(system, y0, key, cand: _Candidate, *, t0, t1, h0, levels, n_paths, sa
         extrapolation_constant=ex_signed,
         extrapolation_bound=ex_bound,
         work=work,
-        seconds_per_path_step=seconds / work if timed else math.nan,
+        seconds_per_path_step=rate,
     )
 
 
 # --- predicted work ---------------------------------------------------------------------------------------------
 
 
-def _best_single(variance: float, bound: float, order: float, eps: float, steps0: int, cost_factor: float):
-    """``(cost, k, N, bias bound)`` of the cheapest ``h = h₀ 2^{−k}`` with ``N = V/(ε² − (bound h^order)²)``."""
+def _best_single(
+    variance: float,
+    bound: float,
+    order: float,
+    eps: float,
+    steps0: int,
+    cost_factor: float,
+    max_refinements: int = MAX_REFINEMENTS,
+    round_paths: Callable[[float], int] | None = None,
+):
+    """``(cost, k, N, bias bound)`` of the cheapest ``h = h₀ 2^{−k}``, ``k ≤ max_refinements``, with
+    ``N = V/(ε² − (bound h^order)²)`` rounded up by ``round_paths`` (default: to whole pieces)."""
     best = (math.inf, -1, 0, math.nan)
     if not math.isfinite(variance) or not math.isfinite(bound):
         return best
-    for k in range(MAX_REFINEMENTS + 1):
+    for k in range(max_refinements + 1):
         bias = bound * (1 / 2**k) ** order
         budget = eps**2 - bias**2
         if budget <= 0:
             continue
-        n = _whole_pieces(variance / budget)[0]
+        n = round_paths(variance / budget) if round_paths else _whole_pieces(variance / budget)[0]
         cost = n * steps0 * 2**k * cost_factor
         if cost < best[0]:
             best = (cost, k, n, bias)
@@ -428,6 +444,7 @@ def to_accuracy(
     max_path_steps: float = 1e11,
     cost: str = "path-steps",
     control_variate: bool = True,
+    quasi_monte_carlo: bool = True,
     batching: Batching | None = None,
     wrt: Sequence[str] | None = None,
 ) -> AccuracyResult:
@@ -450,6 +467,11 @@ def to_accuracy(
     - ``cost``: ``'path-steps'``, or ``'seconds'`` (path-steps times each solver's
       measured seconds per path-step from a second, compiled, pilot run).
     - ``control_variate``: consider a control variate where one is available.
+    - ``quasi_monte_carlo``: consider randomised quasi-Monte Carlo (Euler) where it applies: ``(t1 − t0)/dt``
+      a power of two, a continuous driver, ``solver`` Euler or the default set.  Its pilot (8 scramblings of
+      ``pilot_paths/8`` paths rounded down to a power of two, run twice to time it) predicts its work from its
+      variance at the Monte-Carlo rate ``N^{−1/2}``, an upper bound where it converges faster; its work is
+      counted in Euler path-steps (times the measured cost ratio ``κ``, in the report's note).
     - ``wrt``: names of scalar parameters (``('eps', 'nu')``): the statistic's derivatives in them with their
       standard errors (``derivative``, ``derivative_se``), from the chosen estimator's per-path tangents.
     """
@@ -563,6 +585,11 @@ def to_accuracy(
         alternatives.append(AccuracyAlternative(f"any, {label}", "-", label, False, math.inf, note=note))
     if control_variate and (solver is None or solver == "euler" or type(solver) is dfx.Euler):
         alternatives.append(_control_variate_alternative(system, y0, pilot_key, run_key, rmse, h0, steps0, common))
+    euler = next((p for c, p in zip(candidates, pilots) if c.solver == "euler" or type(c.solver) is dfx.Euler), None)
+    if quasi_monte_carlo and euler is not None:
+        alternatives.append(
+            _quasi_monte_carlo_alternative(system, y0, pilot_key, run_key, rmse, h0, steps0, euler, common)
+        )
     pilot_work += sum(a.pilot_work for a in alternatives)
     if timed:
         rates = {p.solver: p.seconds_per_path_step for p in pilots}
@@ -781,4 +808,123 @@ def _control_variate_alternative(system, y0, pilot_key, run_key, eps, h0, steps0
 
     return AccuracyAlternative(
         name, "control variate", "euler", False, c, dt=h, n_paths=(n,), bias=bias, run=run, pilot_work=work
+    )
+
+
+QMC_PILOT_REPLICATES = 8
+QMC_REPLICATES = 16
+
+
+def _quasi_monte_carlo_alternative(
+    system, y0, pilot_key, run_key, eps, h0, steps0, euler: PilotSummary, common
+) -> AccuracyAlternative:
+    """Randomised quasi-Monte Carlo (:func:`~nhsde.statistics.quasi_monte_carlo`, Euler, ``p = 1``).
+
+    Pilot: 8 scramblings of ``n_q`` paths (``pilot_paths/8`` rounded down to a power of two, ≥ 64) at the finest pilot
+    step ``h_b``, run twice (the second, compiled, timed).  Its variance per path-equivalent
+    ``V_q = SE² · 8 n_q`` is assumed to fall only as ``1/N`` beyond the pilot, the Monte-Carlo rate: the
+    predicted work is an upper bound where quasi-Monte Carlo converges faster (``N^{−0.7} … N^{−1}`` on smooth
+    statistics), and the run's standard error comes out below the prediction.  The bias is Euler's: its pilot's
+    bound ``|C| h`` and signed estimate ``C h`` (the scrambled points give every path the law of a Monte-Carlo
+    path, so the scheme's bias is unchanged).  Work in Euler path-steps: its path-steps times ``κ``, the
+    measured seconds per path-step over those of a compiled plain Euler :func:`~nhsde.simulate` of the same
+    paths and step, timed here in either cost mode (its work is counted in the pilot's); with
+    ``cost='seconds'`` its seconds are then, as every Euler alternative's, its Euler path-steps times the Euler
+    pilot's seconds per path-step.  Steps ``h₀ 2^{−k}`` only while ``steps × channels`` stays within the Sobol'
+    dimensions; the run takes 16 scramblings of a power of two ≥ 64 paths each."""
+    name, method, label = "quasi-Monte Carlo, euler", "quasi-Monte Carlo", euler.solver
+    kind, i, j = common["index"]
+    opts: dict[str, Any] = dict(t0=common["t0"], t1=common["t1"], batching=common["run"]["batching"])
+    save = Save(names=common["save"].names, n=common["save"].n)
+    levels = common["pilot_levels"]
+    h_b, steps_b = h0 / 2 ** (levels - 1), steps0 * 2 ** (levels - 1)
+    r_pilot = QMC_PILOT_REPLICATES  # n_q paths each, the other pilots' paths in all
+    n_q = max(BLOCK, 1 << ((common["pilot_paths"] // r_pilot).bit_length() - 1))
+
+    def skip(note, work=0.0):
+        return AccuracyAlternative(name, method, label, False, math.inf, note=note, pilot_work=work)
+
+    if steps0 & (steps0 - 1):
+        return skip(f"does not apply: (t1 − t0)/dt = {steps0} steps, not a power of two")
+    if not system.noise.continuous:
+        return skip(f"does not apply: the driver {type(system.noise).__name__} has jumps")
+    key = jr.fold_in(pilot_key, 98)
+
+    def pilot(k):
+        start = time.perf_counter()
+        res = randomised_quasi_monte_carlo(system, y0, k, n_paths=n_q, replicates=r_pilot, dt=h_b, save=save, **opts)
+        jax.block_until_ready((res.mean, res.cov, res.mean_se, res.cov_se))
+        return res, time.perf_counter() - start
+
+    try:
+        res, _ = pilot(key)
+    except (ValueError, TypeError) as e:
+        return skip(f"does not apply: {e}")
+    _, seconds = pilot(jr.fold_in(key, 1))  # compiled now: time a second run
+    path_steps = r_pilot * n_q * steps_b
+    rate = seconds / path_steps
+    # κ against plain Euler Monte Carlo (simulate) of the same paths and step, compiled, in either cost mode: with
+    # cost='seconds' every Euler alternative's seconds are its Euler path-steps times the Euler pilot's rate (the
+    # coupled pilot's kernel, cheaper per path-step than simulate's), so QMC's must be too, via its path-steps × κ
+    plain: dict[str, Any] = dict(n_paths=n_q, dt=h_b, solver="euler", save=save, **opts)
+    jax.block_until_ready(simulate(system, y0, jr.fold_in(key, 2), **plain).cov)
+    start = time.perf_counter()
+    for r in range(r_pilot):
+        jax.block_until_ready(simulate(system, y0, jr.fold_in(key, 3 + r), **plain).cov)
+    euler_rate = (time.perf_counter() - start) / path_steps
+    reference_work = float((1 + r_pilot) * n_q * steps_b)
+    kappa = rate / euler_rate if euler_rate > 0 else math.nan
+    work = 2 * path_steps * kappa + reference_work
+    value, se = (float(x) for x in _statistic_of(res, (kind, i, j)))
+    if not all(math.isfinite(x) for x in (value, se, kappa)):
+        return skip("non-finite pilot", work)
+    variance = se**2 * r_pilot * n_q
+    max_k = max(-1, math.floor(math.log2(MAX_DIMENSION / (steps0 * system.noise_dim))))
+
+    def per_replicate(n: float) -> int:  # a power of two ≥ 64
+        return max(BLOCK, 1 << max(0, math.ceil(math.log2(max(n, 1.0) / QMC_REPLICATES))))
+
+    cost, k, _, _ = _best_single(
+        variance,
+        euler.bias_bound,
+        1,
+        eps,
+        steps0,
+        kappa,
+        min(max_k, MAX_REFINEMENTS),
+        lambda n: QMC_REPLICATES * per_replicate(n),
+    )
+    if k < 0:
+        return skip("no step reaches the target within the Sobol' dimensions", work)
+    h = h0 / 2**k
+    per = per_replicate(variance / (eps**2 - (euler.bias_bound * h) ** 2))
+    bias = euler.bias_constant * h  # E S(h) − S ≈ C h (p = 1), Euler's
+
+    def run():
+        res = randomised_quasi_monte_carlo(
+            system,
+            y0,
+            run_key,
+            n_paths=per,
+            replicates=QMC_REPLICATES,
+            dt=h,
+            save=save,
+            wrt=common["run"]["wrt"],
+            **opts,
+        )
+        value, se = _statistic_of(res, (kind, i, j))
+        return value, se, bias, cost, res
+
+    return AccuracyAlternative(
+        name,
+        method,
+        label,
+        False,
+        cost,
+        dt=h,
+        n_paths=(QMC_REPLICATES * per,),
+        bias=bias,
+        note=f"{QMC_REPLICATES} × {per} paths, κ = {kappa:.3g}",
+        run=run,
+        pilot_work=work,
     )
