@@ -15,7 +15,14 @@ import scipy.stats
 import nhsde
 from nhsde.noise import CompoundPoisson, NormalJumps
 from nhsde.scenes import BallOnVibratingPlane, ChaplyginBall, ball_covariances
-from nhsde.statistics import antithetic, extrapolate, multilevel_monte_carlo
+from nhsde.statistics import (
+    antithetic,
+    control_variate,
+    extrapolate,
+    multilevel_monte_carlo,
+    quasi_monte_carlo,
+    to_accuracy,
+)
 
 DELTA = 1 / 1.4
 BALL = BallOnVibratingPlane(eps=1.0, nu=1.0)
@@ -207,3 +214,27 @@ def test_bad_input_raises_naming_the_argument():
         multilevel_monte_carlo(jumps, Y0, jax.random.key(0), rmse=0.1, antithetic=True, **base)
     with pytest.raises(ValueError, match="solver="):
         extrapolate(system, Y0, jax.random.key(0), n_paths=64, t1=1.0, dt=0.25, solver="weak2")
+
+
+def test_bad_spans_and_level_counts_are_refused_before_any_solve():
+    """``t1`` not finite or not after ``t0`` is blamed on ``t1`` by every estimator; ``n_paths`` given as one count and
+    ``max_levels`` below one (two with ``rmse``) are refused naming the argument and what is allowed."""
+    system, key = BALL.build(), jax.random.key(0)
+    target = ("cov", "x", "x")
+    for t1 in (float("nan"), float("inf"), -1.0, 0.0):
+        calls = [
+            lambda: extrapolate(system, Y0, key, n_paths=64, t1=t1, dt=0.25),
+            lambda: quasi_monte_carlo(system, Y0, key, n_paths=64, t1=t1, dt=0.25),
+            lambda: multilevel_monte_carlo(system, Y0, key, rmse=0.1, t1=t1, dt=0.25, target=target),
+            lambda: control_variate(system, Y0, key, n_paths=64, t1=t1, dt=0.25),
+            lambda: to_accuracy(system, Y0, key, rmse=0.1, t1=t1, dt=0.25, statistic=target),
+        ]
+        for call in calls:
+            with pytest.raises(ValueError, match=f"^t1={t1}; must be"):
+                call()
+    base = dict(t1=1.0, dt=0.25, target=target)
+    with pytest.raises(TypeError, match=r"n_paths=256; expected one count per level.*\(256,\) \* 3"):
+        multilevel_monte_carlo(system, Y0, key, n_paths=256, **base)
+    for kwargs in (dict(n_paths=(64,), max_levels=0), dict(rmse=0.1, max_levels=1), dict(rmse=0.1, max_levels=-2)):
+        with pytest.raises(ValueError, match=f"^max_levels={kwargs['max_levels']}; must be ≥ 1"):
+            multilevel_monte_carlo(system, Y0, key, **base, **kwargs)

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 
-__all__ = ["FAST_COMPILE", "cast_floats", "check_key", "check_number", "check_steps", "is_concrete"]
+__all__ = ["FAST_COMPILE", "cast_floats", "check_key", "check_number", "check_span", "check_steps", "is_concrete"]
 
 FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
 """XLA options for programs that run once (surveys, Newton solves): compile time dominates their run time."""
@@ -58,6 +58,14 @@ def check_number(name: str, value, *, positive: bool = False, integer: bool = Fa
     if positive and v <= 0:
         raise ValueError(f"{name}={value}; must be > 0.")
     return int(v) if integer else v
+
+
+def check_span(t0, t1) -> tuple[float, float]:
+    """``(t0, t1)`` as finite Python numbers with ``t1 > t0``; a ``ValueError`` names the one at fault otherwise."""
+    t0, t1 = check_number("t0", t0), check_number("t1", t1)
+    if not t1 > t0:
+        raise ValueError(f"t1={t1}; must be > t0={t0}.")
+    return t0, t1
 
 
 def check_steps(name: str, span: float, step: float) -> int:

@@ -52,7 +52,7 @@ import numpy as np
 
 from .._brownian import BLOCK
 from .._ensemble import Save
-from .._misc import check_key, check_number, check_steps, is_concrete
+from .._misc import check_key, check_number, check_span, check_steps, is_concrete
 from .._options import AbstractSteps, Batching, FixedSteps
 from .._simulate import simulate
 from .._solvers import solver_needs
@@ -493,9 +493,7 @@ def to_accuracy(
                 "steps=FixedSteps(h₀) (without brownian_dt)."
             )
         dt = steps.dt
-    t0, t1 = check_number("t0", t0), check_number("t1", t1)
-    if not t1 > t0:
-        raise ValueError(f"t1={t1}; must be > t0={t0}.")
+    t0, t1 = check_span(t0, t1)
     h0 = check_number("dt", (t1 - t0) / 4 if dt is None else dt, positive=True)
     steps0 = check_steps("dt", t1 - t0, h0)
     if save is not None and not isinstance(save, Save):

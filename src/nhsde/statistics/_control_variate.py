@@ -72,7 +72,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .._ensemble import Save
-from .._misc import cast_floats, check_key, check_number, check_steps
+from .._misc import cast_floats, check_key, check_number, check_span, check_steps
 from .._options import AbstractSteps, Batching, FixedSteps
 from .._params import validated
 from .._simulate import MIN_PATHS, simulate
@@ -345,9 +345,7 @@ def control_variate(
     if dt is None:
         raise TypeError("control_variate needs a step: dt=… or steps=FixedSteps(dt).")
     h = check_number("dt", dt, positive=True)
-    t0, t1 = check_number("t0", t0), check_number("t1", t1)
-    if t1 <= t0:
-        raise ValueError(f"t1={t1} must be > t0={t0}.")
+    t0, t1 = check_span(t0, t1)
     n_steps = check_steps("dt", t1 - t0, h)
     steps = FixedSteps(h) if steps is None else steps
     y0 = system.state(y0, "y0")

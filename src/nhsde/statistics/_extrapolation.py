@@ -33,7 +33,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from .._ensemble import AbstractMoments, Save
-from .._misc import check_number, check_steps
+from .._misc import check_number, check_span, check_steps
 from .._options import Batching, FixedSteps
 from .._simulate import simulate
 from .._solvers import solver_needs
@@ -268,6 +268,7 @@ def extrapolate(
         order = 2 if isinstance(solver, PlatenWeak2) else 1
     p = check_number("order", order, positive=True)
     h = check_number("dt", dt, positive=True)
+    t0, t1 = check_span(t0, t1)
     n_steps = check_steps("dt", t1 - t0, h)
     save = paths_save(save, n_steps, system.layout.names)
     assert save.names is not None

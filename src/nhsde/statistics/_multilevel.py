@@ -43,7 +43,7 @@ from jaxtyping import Array, Float
 
 from .._brownian import BLOCK
 from .._ensemble import Save
-from .._misc import check_key, check_number, check_steps, is_concrete
+from .._misc import check_key, check_number, check_span, check_steps, is_concrete
 from .._options import AbstractSteps, Batching, FixedSteps
 from .._solvers import solver_needs
 from .._system import StochasticSystem
@@ -235,7 +235,7 @@ def multilevel_monte_carlo(
     if dt is None:
         raise TypeError("multilevel_monte_carlo needs the coarsest step: dt=h₀ or steps=FixedSteps(h₀).")
     h0 = check_number("dt", dt, positive=True)
-    t0, t1 = check_number("t0", t0), check_number("t1", t1)
+    t0, t1 = check_span(t0, t1)
     steps0 = check_steps("dt", t1 - t0, h0)
     solver_needs(coupling_solver(solver), system)
     if not isinstance(antithetic, bool):
@@ -253,6 +253,10 @@ def multilevel_monte_carlo(
     if piece_paths < BLOCK or piece_paths % BLOCK:
         raise ValueError(f"piece_paths={piece_paths}; must be a positive multiple of {BLOCK}.")
     max_levels = check_number("max_levels", max_levels, integer=True)
+    if max_levels < (1 if rmse is None else 2):
+        raise ValueError(
+            f"max_levels={max_levels}; must be ≥ 1, and ≥ 2 with rmse=… (the bias estimate compares two levels)."
+        )
     target_names = tuple(dict.fromkeys(target[1:])) if isinstance(target, tuple) else ()
     save = paths_save(save, steps0, target_names or system.layout.names)
     assert save.names is not None
@@ -275,6 +279,12 @@ def multilevel_monte_carlo(
     )
 
     if n_paths is not None:
+        if not isinstance(n_paths, Sequence) or isinstance(n_paths, str):
+            raise TypeError(
+                f"n_paths={n_paths!r}; expected one count per level, (N_0, …, N_L): the count fixes the number of "
+                f"levels (e.g. n_paths=({n_paths!r},) * 3 for three levels of that many samples each), or give "
+                "rmse=… to choose levels and counts."
+            )
         counts = [check_number("n_paths", n, integer=True) for n in n_paths]
         if not counts or min(counts) < 1:
             raise ValueError(f"n_paths={n_paths!r}; expected one count ≥ 1 per level, (N_0, …, N_L).")
@@ -336,7 +346,7 @@ def _bias(level_means, alpha):
 
 def _adapt(levels: _Levels, eps: float, alpha: float, max_levels: int, kind, i, j):
     """Giles (2015) Algorithm 1 with samples in whole pieces; returns the moments of each level."""
-    n_levels = 3
+    n_levels = min(3, max_levels)
     wanted = [levels.piece(level) for level in range(n_levels)]
     while True:
         for level, n in enumerate(wanted):

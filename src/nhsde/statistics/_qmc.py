@@ -37,7 +37,7 @@ from jaxtyping import Array, PRNGKeyArray, UInt
 
 from .._brownian import BLOCK, AbstractDriver
 from .._ensemble import Save
-from .._misc import check_key, check_number, check_steps
+from .._misc import check_key, check_number, check_span, check_steps
 from .._options import AbstractSteps, Batching
 from .._simulate import MAX_PATH_INDEX, simulate
 from .._solvers import SOLVERS, solver_needs
@@ -257,6 +257,7 @@ def quasi_monte_carlo(
             "where it asks, which a point set fixed in advance cannot follow)."
         )
     dt = check_number("dt", dt, positive=True)
+    t0, t1 = check_span(t0, t1)
     n_base = check_steps("dt", t1 - t0, dt)
     if n_base & (n_base - 1):
         raise ValueError(
