@@ -60,6 +60,25 @@ def test_reference_linearisation_of_a_linear_system_is_exact():
     np.testing.assert_allclose(np.asarray(est.cov), ball_exact(np.asarray(est.ts)), rtol=1e-10, atol=1e-15)
 
 
+def test_the_estimate_is_continuous_as_the_noise_vanishes():
+    """At ν = 0 every path is the noiseless Euler motion (exact binary fractions from (0, 0, 1, 1) at h = 1/16), the
+    control has no variance and β is its limit 1: the means are the noiseless motion ``x = u₀(1 − e^{−2εt})/(2ε)``,
+    ``u_x = u₀ e^{−2εt}`` (not Euler's, 7 % off), as at ν = 10⁻¹² and 10⁻⁸ (exact for the linear ball, up to
+    rounding)."""
+    y0 = jnp.array([0.0, 0.0, 1.0, 1.0])
+    runs = [
+        control_variate(BALL.build().replace_params(nu=nu), y0, jax.random.key(0), **BALL_ARGS)
+        for nu in (0.0, 1e-12, 1e-8)
+    ]
+    ts = np.asarray(runs[0].ts)
+    exact = np.stack([(1 - np.exp(-2 * ts)) / 2, np.exp(-2 * ts)], -1)
+    for est in runs:
+        np.testing.assert_allclose(np.asarray(est.mean), exact, rtol=1e-10)
+        np.testing.assert_allclose(np.asarray(est.coefficient.mean), 1.0, rtol=1e-6)
+    assert abs(float(runs[0].plain.mean[-1, 1]) / exact[-1, 1] - 1) > 0.05  # Euler's bias, removed
+    np.testing.assert_array_equal(np.asarray(runs[0].cov), 0.0)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "solver", ["milstein", "heun", "heun2", "sra1", "exponential", "weak2", nhsde.PlatenWeak2("gaussian")]

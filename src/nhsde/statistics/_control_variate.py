@@ -238,10 +238,14 @@ def _control_moments(system: StochasticSystem, params, names, ts, p, m, k):
 
 
 def _split(var_y, var_c, var_sum):
-    """``(β, residual variance, reduction)`` from the variances of ``Y``, ``C`` and ``Y + C`` (polarisation)."""
+    """``(β, residual variance, reduction)`` from the variances of ``Y``, ``C`` and ``Y + C`` (polarisation).
+
+    Where the control has no variance (no noise, ``ν = 0``, or ``t0``) β is its limit as the noise vanishes, 1: the
+    fluctuations of ``Y`` and ``C`` agree to first order in the noise (module), and ``Ŷ − (Ĉ − E C)`` keeps the
+    estimate continuous there (the noiseless motion's value, without the scheme's bias of the linear part)."""
     cross = 0.5 * (var_sum - var_y - var_c)
     ok = var_c > 0
-    beta = jax.lax.stop_gradient(jnp.where(ok, cross / jnp.where(ok, var_c, 1.0), 0.0))
+    beta = jax.lax.stop_gradient(jnp.where(ok, cross / jnp.where(ok, var_c, 1.0), 1.0))
     resid = jnp.maximum(var_y - 2 * beta * cross + beta**2 * var_c, 0.0)
     vy, vr = jax.lax.stop_gradient(var_y), jax.lax.stop_gradient(resid)
     reduction = jnp.where(vr > 0, vy / jnp.where(vr > 0, vr, 1.0), jnp.where(vy > 0, jnp.inf, 1.0))
