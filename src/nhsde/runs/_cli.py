@@ -22,6 +22,7 @@ from typing import cast
 import numpy as np
 
 from ._distributed import add_flags, processes
+from ._fit import fit_data_flags
 
 __all__ = ["build_parser", "main"]
 
@@ -505,8 +506,13 @@ def _cmd_simulate(args) -> int:
 
 
 def _cmd_fit(args) -> int:
-    from ._fit import run_fit
+    from ._config import ConfigError
+    from ._fit import fit_data_command, run_fit
 
+    if args.data is not None:
+        return fit_data_command(args)
+    if args.config is None:
+        raise ConfigError("give --config FILE (a fit file) or --data FILE --scene SCENE --fit NAMES.")
     config = _load(args, "fit")
     out = Path(args.out) if args.out else Path(args.config).with_suffix(".nc")
     result, _ = run_fit(config, out)
@@ -563,8 +569,9 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=FIT_EXAMPLE,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    fit.add_argument("--config", required=True, help="a TOML fit file")
+    fit.add_argument("--config", help="a TOML fit file")
     fit.add_argument("--out", help="netCDF file for the estimates (default the config's name with .nc)")
+    fit_data_flags(fit)  # --data FILE --scene SCENE --fit NAMES, the model's options, --json
     for p in (sim, fit):
         add_flags(p)  # --coordinator, --num-processes, --process-id: several processes, process 0 writes
     return parser

@@ -7,21 +7,43 @@ A fit file (``format = "nhsde-fit"``) holds ``estimate``, ``se``, ``start`` and
 attributes the fit configuration (JSON), ``chi2``, ``dof``, ``steps``,
 ``converged``, the data file with its configuration and git revision, the
 package versions, the sources' SHA-256, the git revision and a checksum.
+
+:func:`fit_data` fits a scene to a data file (CSV or netCDF, the layouts of
+:mod:`nhsde.fit`), as ``nhsde fit --data FILE --scene SCENE`` does.
 """
 
 from __future__ import annotations
 
+import argparse
+import json
+import math
 from pathlib import Path
+from typing import Any
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import xarray as xr
 
-from ..fit import FitResult, Observations, Simulated, estimate
+from .._system import StochasticSystem
+from ..fit import FitResult, MomentEquations, Observations, Simulated, estimate
+from ..scenes import get_scene
 from ._config import ConfigError, RunConfig
 from ._pieces import need_x64
 from ._store import FIT_FORMAT, FORMAT, FORMAT_VERSION, claim, load_run, provenance, seal, write
 
-__all__ = ["observations_from_run", "run_fit"]
+__all__ = [
+    "DATA_MODELS",
+    "fit_data",
+    "fit_data_command",
+    "fit_data_flags",
+    "observations_from_run",
+    "read_data",
+    "run_fit",
+]
+
+DATA_MODELS = ("simulate", "moments")
+"""The models of :func:`fit_data`: :class:`~nhsde.fit.Simulated` and :class:`~nhsde.fit.MomentEquations`."""
 
 
 def observations_from_run(ds: xr.Dataset, names=None) -> Observations:
@@ -111,7 +133,133 @@ def _fit(config: RunConfig) -> tuple[FitResult, xr.Dataset]:
             "data_file": str(data_path),
             "data_config": data.attrs["config"],
             "data_git_revision": data.attrs["git_revision"],
-            **provenance(),
+            **provenance(config),
         },
     )
     return result, seal(ds)
+
+
+def read_data(path, system: StochasticSystem | None = None) -> Observations:
+    """:class:`~nhsde.fit.Observations` of a data file: CSV (``.csv``), else netCDF (an nhsde run file, all its
+    times but the first, or any dataset :meth:`~nhsde.fit.Observations.from_xarray` reads).
+
+    With ``system``, every component must be one of its state or observable names.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"--data {path}: no such file.")
+    if path.suffix.lower() == ".csv":
+        return Observations.from_csv(path, system=system)
+    ds = load_run(path)
+    if ds.attrs.get("format") == FORMAT:
+        return Observations.from_xarray(ds.isel(time=slice(1, None)), system=system)
+    return Observations.from_xarray(ds, system=system)
+
+
+def _data_step(ts, t0: float) -> float:
+    """The largest step of at most 0.01 that divides the spacing of the observation times (and their start)."""
+    h = float(ts[0] - t0 if len(ts) == 1 else ts[1] - ts[0])
+    return h / math.ceil(h / 0.01) if h > 0 else 0.01
+
+
+def fit_data(
+    data,
+    scene: str,
+    vary: tuple[str, ...],
+    *,
+    parameters: dict[str, float] | None = None,
+    model: str = "simulate",
+    n_paths: int = 4096,
+    dt: float | None = None,
+    solver: str = "euler",
+    seed: int = 0,
+    t0: float = 0.0,
+    max_steps: int = 100,
+) -> tuple[FitResult, Observations]:
+    """Fit the parameters ``vary`` of the scene ``scene`` to the data file ``data``; returns the fit and the data.
+
+    The model starts at the scene's initial state at ``t0``: ``"simulate"`` simulates ``n_paths`` paths with
+    ``jax.random.key(seed)`` (use a seed other than the data's), ``solver`` and step ``dt``; ``"moments"``
+    integrates the normal-approximation moment equations with step ``dt`` (exact for linear systems).  ``dt``
+    defaults to the largest step of at most 0.01 that divides the spacing of the observation times.
+    ``parameters`` are the start values (and the fixed values of the other parameters).
+    """
+    if model not in DATA_MODELS:
+        raise ConfigError(f"--model {model!r}: allowed models are {', '.join(DATA_MODELS)}.")
+    scene_cls: Any = get_scene(scene)
+    try:
+        built = scene_cls(**(parameters or {}))
+    except (TypeError, ValueError) as e:
+        raise ConfigError(f"--set: {e}") from None
+    system = built.build()
+    observed = read_data(data, system)
+    step = _data_step(observed.ts, t0) if dt is None else dt
+    y0 = jnp.asarray(built.initial_state(), jnp.float64)
+    if model == "simulate":
+        fitted = Simulated(y0, jax.random.key(seed), n_paths=n_paths, steps=step, solver=solver, t0=t0)
+    else:
+        fitted = MomentEquations(y0, dt=step, t0=t0)
+    return estimate(system, observed, fitted, vary=tuple(vary), max_steps=max_steps), observed
+
+
+def fit_data_flags(parser: argparse.ArgumentParser):
+    """The options of ``nhsde fit --data FILE --scene SCENE --fit NAMES``."""
+    parser.add_argument("--data", help="a data file: CSV (per path or summary, see the fitting guide) or netCDF")
+    parser.add_argument("--scene", help="with --data: the scene to fit (a name of `nhsde scenes` or MODULE:CLASS)")
+    parser.add_argument("--fit", help="with --data: the parameters to fit, comma-separated (default eps,nu)")
+    parser.add_argument("--model", choices=DATA_MODELS, help="with --data: simulate (default) or moments")
+    parser.add_argument("--paths", type=int, help="with --data --model simulate: model paths (default 4096)")
+    parser.add_argument("--dt", type=float, help="with --data: the model's step (default ≤ 0.01, dividing the data's)")
+    parser.add_argument("--solver", help="with --data --model simulate: the solver (default euler)")
+    parser.add_argument("--seed", type=int, help="with --data: the model's seed, not the data's (default 1)")
+    parser.add_argument("--t0", type=float, help="with --data: the time of the scene's initial state (default 0)")
+    parser.add_argument("--max-steps", type=int, help="with --data: the most optimizer steps (default 100)")
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="NAME=VALUE", help="with --data: a start or fixed parameter"
+    )
+    parser.add_argument(
+        "--json", action="store_true", help='with --data: print {name: {"value": v, "se": s}, ...} only'
+    )
+
+
+def fit_data_command(args) -> int:
+    """``nhsde fit --data FILE --scene SCENE --fit NAMES``: the fit's table, or with ``--json`` its values and
+    standard errors as JSON."""
+    if args.config is not None or args.out is not None:
+        raise ConfigError("--data cannot be combined with --config or --out; a data fit prints its result.")
+    if args.scene is None:
+        raise ConfigError("--data needs --scene SCENE (see `nhsde scenes`, or MODULE:CLASS).")
+    parameters = {}
+    for item in args.set:
+        name, _, value = item.partition("=")
+        try:
+            parameters[name] = float(value)
+        except ValueError:
+            raise ConfigError(f"--set {item!r}: expected NAME=VALUE with a number, e.g. --set eps=0.5.") from None
+    vary = tuple(n.strip() for n in (args.fit or "eps,nu").split(","))
+    if not all(vary):
+        raise ConfigError(f"--fit {args.fit!r}: expected comma-separated parameter names, e.g. --fit eps,nu.")
+    jax.config.update("jax_enable_x64", True)
+    options = {
+        "model": args.model,
+        "n_paths": args.paths,
+        "dt": args.dt,
+        "solver": args.solver,
+        "seed": 1 if args.seed is None else args.seed,
+        "t0": args.t0,
+        "max_steps": args.max_steps,
+    }
+    result, observed = fit_data(
+        args.data, args.scene, vary, parameters=parameters, **{k: v for k, v in options.items() if v is not None}
+    )
+    if args.json:
+        print(
+            json.dumps(
+                {n: {"value": float(v), "se": float(s)} for n, v, s in zip(result.names, result.values, result.se)}
+            )
+        )
+        return 0
+    layout = "per-path" if observed.from_trajectories else "summary"
+    print(f"{args.data}: {layout} data, {observed.n_paths} paths, {len(observed.ts)} times, names {observed.names}")
+    print(result)
+    return 0
