@@ -128,7 +128,7 @@ def test_bad_key_is_refused():
 
 
 def test_unknown_scene_is_refused():
-    with pytest.raises(ValueError, match="unknown scene 'ball'; known scenes: ball-on-vibrating-plane"):
+    with pytest.raises(ValueError, match="scene 'ball': unknown scene; known scenes: ball-on-vibrating-plane"):
         get_scene("ball")
 
 

@@ -84,7 +84,7 @@ def test_registry_is_the_set_of_concrete_scenes():
     for name, cls in S.SCENES.items():
         assert cls.name == name and cls.description() and getattr(S, cls.__name__) is cls
         assert S.get_scene(name) is cls
-    with pytest.raises(ValueError, match="unknown scene 'ball'; known scenes: .*chaplygin-ball"):
+    with pytest.raises(ValueError, match="scene 'ball': unknown scene; known scenes: .*chaplygin-ball"):
         S.get_scene("ball")
     with pytest.raises(TypeError):
         S.SCENES["x"] = S.ChaplyginSleigh  # pyright: ignore[reportIndexIssue]

@@ -128,7 +128,7 @@ def test_cli_rejects_bad_input(capsys):
     import re
 
     for argv, match in [
-        (["simulate", "ball"], "unknown scene 'ball'"),
+        (["simulate", "ball"], "scene 'ball': unknown scene"),
         (["simulate", "ball-on-vibrating-plane", "--set", "eps=-1"], "eps=-1.0 is not allowed"),
         (["simulate", "ball-on-vibrating-plane", "--set", "mass=1"], "unknown parameter"),
         (["simulate", "ball-on-vibrating-plane", "--solver", "rk4", "--no-progress"], "--solver 'rk4': allowed"),

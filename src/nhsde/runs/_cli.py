@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import os
 import re
 import sys
 import time
@@ -172,12 +173,20 @@ def _saved(out: Path) -> str:
 
 
 def _cmd_scenes(args) -> int:
-    from ..scenes import SCENES
+    from ..scenes import SCENES, get_scene, installed_scenes
 
-    for name, cls in SCENES.items():
-        print(f"{name}: {cls.description()}")
+    installed = installed_scenes()
+    for name in [*SCENES, *installed]:
+        try:
+            cls = get_scene(name)
+        except ValueError as e:  # a broken installed scene is reported, not fatal
+            print(f"{name}: cannot be loaded: {e}")
+            continue
+        where = f" (installed: {installed[name]})" if name in installed else ""
+        print(f"{name}: {cls.description()}{where}")
         for pname, default, allowed, pdoc in cls.Parameters.describe():
             print(f"    {pname:<14} default {float(cast(float, default)):<8g} {allowed:<18} {pdoc}")
+    print("\nor MODULE:CLASS: a scene class of your own, importable from the current directory or PYTHONPATH")
     return 0
 
 
@@ -394,7 +403,7 @@ def _cmd_simulate_scene(args) -> int:
                 long_name = f"pathwise (forward-mode) derivative of {stat} in {q}"
                 derivatives[f"d_{stat}_d_{q}"] = (dims, np.asarray(value[a]), {"long_name": long_name})
                 derivatives[f"d_{stat}_d_{q}_se"] = (dims, np.asarray(se[a]), {"long_name": "its standard error"})
-        ds = dataset(config, built, pieces, provenance(), extra=derivatives)
+        ds = dataset(config, built, pieces, provenance(config), extra=derivatives)
         if out:
             write(ds, out)
 
@@ -532,7 +541,11 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=RUN_EXAMPLE,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    sim.add_argument("scene", nargs="?", help="scene name, see `nhsde scenes` (or use --config)")
+    sim.add_argument(
+        "scene",
+        nargs="?",
+        help="scene name, see `nhsde scenes`, or MODULE:CLASS, a scene class of your own (or use --config)",
+    )
     sim.add_argument("--config", help="a TOML run file; runs (or resumes) it, writing netCDF to --out")
     sim.add_argument("--paths", type=int, help="number of paths (default 4096)")
     sim.add_argument("--t1", type=float, help="final time (default 10)")
@@ -577,6 +590,20 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+@contextlib.contextmanager
+def _current_directory_on_path():
+    """``MODULE:CLASS`` scenes import from the current directory first, as with ``python -m``."""
+    here = os.getcwd()
+    added = here not in sys.path
+    if added:
+        sys.path.insert(0, here)
+    try:
+        yield
+    finally:
+        if added:
+            sys.path.remove(here)
+
+
 def main(argv=None) -> int:
     """Entry point of the ``nhsde`` command; returns the exit status.
 
@@ -589,7 +616,10 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     command = {"scenes": _cmd_scenes, "simulate": _cmd_simulate, "fit": _cmd_fit}[args.command]
     try:
-        with processes(args):  # jax.distributed from the flags or NHSDE_* variables; none: one process
+        with (
+            _current_directory_on_path(),
+            processes(args),
+        ):  # jax.distributed from the flags or NHSDE_* variables; none: one process
             return command(args)
     except ValueError as e:  # ConfigError, and what simulate refuses
         message, status = str(e), 2

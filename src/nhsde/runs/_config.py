@@ -3,7 +3,9 @@
 Every key is checked against the schema: unknown keys, wrong types,
 out-of-range values, unknown scenes, options, parameters, state components or
 saved names are rejected with the key named.  Values are only ever compared
-with known names and numbers, so no configuration can execute code.
+with known names and numbers; the one exception is ``scene = "MODULE:CLASS"``,
+a scene class of the user's, whose module is imported (running its code, as
+``import`` does) from the Python path.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from .._options import FixedSteps
 from .._simulate import MAX_PATH_INDEX, MIN_PATHS
 from .._solvers import SOLVERS, solver_needs
 from .._system import StochasticSystem
-from ..scenes import SCENES, AbstractScene, get_scene
+from ..scenes import SCENES, AbstractScene, find_scene
 
 __all__ = [
     "ACCURACY_SOLVERS",
@@ -215,9 +217,10 @@ def _construct(cls, data: dict) -> AbstractScene:
 
 def _check_scene(data: dict) -> tuple[AbstractScene, StochasticSystem]:
     """Check the scene-dependent tables; returns the scene and its system (built once, here)."""
-    if data["scene"] not in SCENES:
-        raise ConfigError(f"scene = {data['scene']!r}: unknown scene; known scenes: {', '.join(SCENES)}.", "scene")
-    cls = SCENES[data["scene"]]
+    try:
+        cls = find_scene(data["scene"], SCENES)
+    except ValueError as e:
+        raise ConfigError(f"scene = {data['scene']!r}: {e}", "scene") from None
     options = _scene_options(cls)
     kinds = {bool: "bool", str: "str", int: "int", float: "float"}
     for key, value in data["options"].items():
@@ -387,9 +390,14 @@ class RunConfig:
                 _check_accuracy(data, system)
         return cls(kind, data, Path(base), scene, system, x64_enabled())
 
+    @property
+    def scene_class(self) -> type[AbstractScene]:
+        """The class of the file's ``scene``: shipped, installed, or the user's ``MODULE:CLASS``."""
+        return type(self._scene)
+
     def parameters(self) -> dict[str, float]:
         """Every parameter of the scene: the file's values and the defaults of the rest."""
-        described = get_scene(self.data["scene"]).Parameters.describe()
+        described = self.scene_class.Parameters.describe()
         return {name: float(cast(float, default)) for name, default, *_ in described} | self.data["parameters"]
 
     def build(self) -> Built:
@@ -401,7 +409,7 @@ class RunConfig:
         d = self.data
         scene, system = self._scene, self._system
         if x64_enabled() and not self._x64:
-            scene = get_scene(d["scene"])(**d["options"], **d["parameters"])
+            scene = type(scene)(**d["options"], **d["parameters"])
             system = scene.build()
         y0 = scene.initial_state().astype(jnp.dtype(d["precision"]))
         for name, value in d["initial_state"].items():

@@ -74,7 +74,7 @@ def run(
     n_total, chunk = d["paths"]["n"], d["paths"]["chunk"]
     keep = d["statistics"]["keep_paths"]
     with claim(out, config) as found:
-        pieces, prov = (Pieces(), provenance()) if found is None else resume(found, out, config)
+        pieces, prov = (Pieces(), provenance(config)) if found is None else resume(found, out, config)
         if on_start is not None:
             on_start(len(pieces.sums))
         built = config.build()

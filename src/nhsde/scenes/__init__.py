@@ -38,6 +38,12 @@ from ._contact_oscillator import (
     ContactOscillatorParameters as ContactOscillatorParameters,
 )
 from ._disk import DiskParameters as DiskParameters, VerticalRollingDisk as VerticalRollingDisk
+from ._lookup import (
+    ENTRY_POINT_GROUP as ENTRY_POINT_GROUP,
+    find_scene,
+    installed_scenes as _installed,
+    scene_source_hash as scene_source_hash,
+)
 from ._rattleback import Rattleback as Rattleback
 from ._rolling import FlatBaseOnSphere as FlatBaseOnSphere, RollingBody as RollingBody
 from ._rolling_ball import BallFromLagrangian as BallFromLagrangian, RollingBallParameters as RollingBallParameters
@@ -56,25 +62,49 @@ SCENES = scene_registry(__name__)
 ``nhsde.scenes`` (read-only, derived from the classes' ``name``)."""
 
 
+def installed_scenes() -> dict[str, str]:
+    """The scenes installed packages add: ``name → "MODULE:CLASS"`` of the entry points in the group
+    ``nhsde.scenes`` (:data:`ENTRY_POINT_GROUP`), but those whose name is a shipped scene's.
+
+    A package adds one in its ``pyproject.toml``::
+
+        [project.entry-points."nhsde.scenes"]
+        knife-edge = "my_scenes:KnifeEdge"
+    """
+    return _installed(SCENES)
+
+
 def get_scene(name: str) -> type[AbstractScene]:
-    """The scene class called ``name``; a clear error lists the known names.
+    """The scene class called ``name``: a shipped scene, an installed one, or ``MODULE:CLASS``.
 
     Arguments:
-        name: a scene's CLI name, a key of ``SCENES``.
+        name: a scene's CLI name (a key of ``SCENES`` or of :func:`installed_scenes`), or ``"MODULE:CLASS"``:
+            the class ``CLASS`` of the module ``MODULE``, imported from the Python path (which runs the module's
+            code, as ``import`` does).
 
     Returns:
         the scene class (construct it with keyword arguments).
+
+    Raises:
+        ValueError: naming ``name`` and what is wrong: an unknown name (the known ones are listed), a module
+            not found, a missing attribute, or an object that is not a concrete scene class.
 
     Examples:
         >>> from nhsde import scenes
         >>> scenes.get_scene("ball-on-vibrating-plane")
         <class 'nhsde.scenes._ball.BallOnVibratingPlane'>
+        >>> scenes.get_scene("nhsde.scenes:ChaplyginSleigh")
+        <class 'nhsde.scenes._sleigh.ChaplyginSleigh'>
         >>> scenes.get_scene("ball")
         Traceback (most recent call last):
         ...
-        ValueError: unknown scene 'ball'; known scenes: ball-on-vibrating-plane, ...
+        ValueError: scene 'ball': unknown scene; known scenes: ball-on-vibrating-plane, ...
+        >>> scenes.get_scene("nhsde.scenes:AbstractSpecScene")
+        Traceback (most recent call last):
+        ...
+        ValueError: scene 'nhsde.scenes:AbstractSpecScene': AbstractSpecScene is an abstract scene; ...
     """
     try:
-        return SCENES[name]
-    except KeyError:
-        raise ValueError(f"unknown scene {name!r}; known scenes: {', '.join(SCENES)}.") from None
+        return find_scene(name, SCENES)
+    except ValueError as e:
+        raise ValueError(f"scene {name!r}: {e}") from None
