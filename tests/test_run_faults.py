@@ -1,9 +1,10 @@
 """Faults around run files and the ``nhsde`` command: no silent wrong number, no hang, no lost work.
 
-A damaged, truncated or edited partial file is refused naming it (or, where the
-damage missed everything a resume reads, resumes bitwise); a second writer is
-refused; output paths are checked before any work and links are never written
-through; a full disk keeps the pieces written; resume compares the package's
+A damaged, truncated or edited partial file (its data, coordinates or
+attributes) is refused naming it (or, where the damage missed everything a
+resume reads, resumes bitwise); a second writer is refused; output paths are
+checked before any work and links are never written through; a full disk or
+the file-size limit keeps the pieces written, with one line and exit status 1; resume compares the package's
 sources, not the git revision; limits of the TOML are refused naming the key;
 the command ends bad input with one line and exit status 2.
 """
@@ -15,6 +16,7 @@ import json
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -101,6 +103,40 @@ def test_edited_partial_files_are_refused(runs, tmp_path):
     ds.to_netcdf(path, engine="h5netcdf")
     with pytest.raises(ConfigError, match=f"{re.escape(str(path))}: impossible counts"):
         run(CONFIG, path)
+
+
+@pytest.mark.parametrize(
+    "edit",
+    [
+        lambda ds: ds.assign_coords(time=ds["time"].values * 2),
+        lambda ds: ds.assign_coords(name=["y", "u_x"]),
+        lambda ds: ds.assign_coords(role=("name", ["velocity", "position"])),
+    ],
+    ids=["time", "name", "role"],
+)
+def test_edited_coordinates_are_refused(runs, tmp_path, edit):
+    """The checksum covers the coordinates: an edited time or name is refused, like an edited number."""
+    whole, partial = runs
+    path = tmp_path / "edited.nc"
+    stored = load_run(partial)
+    edited = edit(stored)
+    assert not edited.identical(stored) and edited.attrs == stored.attrs
+    edited.to_netcdf(path, engine="h5netcdf")
+    refusal = f"{re.escape(str(path))} is damaged or was edited: its contents .*coordinates.* do not match"
+    with pytest.raises(ConfigError, match=refusal):
+        load_run(path)
+    with pytest.raises(ConfigError, match=refusal):
+        run(CONFIG, path)
+
+
+def test_a_file_of_an_earlier_format_is_refused_naming_its_version(runs, tmp_path):
+    _, partial = runs
+    path = tmp_path / "old.nc"
+    ds = load_run(partial)
+    ds.attrs["format_version"] = 2  # its checksum, of format version 3, no longer matches: as a version-2 file's
+    ds.to_netcdf(path, engine="h5netcdf")
+    with pytest.raises(ConfigError, match=f"{re.escape(str(path))} is of format version 2, whose checksum"):
+        load_run(path)
 
 
 def test_a_second_writer_is_refused(runs, tmp_path):
@@ -191,26 +227,61 @@ def test_a_link_at_the_temporary_name_is_replaced_not_followed(runs, tmp_path):
 
 
 def test_a_full_disk_keeps_the_pieces_written(runs, tmp_path, monkeypatch, capsys):
-    """The third write fails half-way with ENOSPC: the file keeps two pieces, the command says so, resume is bitwise."""
+    """The third write fails at its sync with ENOSPC: the file keeps two pieces, the command says so, resume is
+    bitwise."""
     whole, _ = runs
     cfg = tmp_path / "run.toml"
     cfg.write_text(BASE_TOML)
     out = tmp_path / "run.nc"
-    to_netcdf, calls = xr.Dataset.to_netcdf, []
+    fsync, calls = os.fsync, []
 
-    def full_disk_on_the_third(self, target, *args, **kwargs):
-        calls.append(target)
+    def full_disk_on_the_third(fd):
+        calls.append(fd)
         if len(calls) == 3:
-            target.write(b"\x89HDF\r\n\x1a\n" + bytes(100))
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-        return to_netcdf(self, target, *args, **kwargs)
+        return fsync(fd)
 
-    monkeypatch.setattr(xr.Dataset, "to_netcdf", full_disk_on_the_third)
+    monkeypatch.setattr(os, "fsync", full_disk_on_the_third)
     assert main(["simulate", "--config", str(cfg), "--no-progress"]) == 1
     err = capsys.readouterr().err
     assert re.fullmatch(f"nhsde simulate: .*cannot write {re.escape(str(out))} \\(No space left on device\\).*\n", err)
     monkeypatch.undo()
     assert load_run(out).attrs["pieces_done"] == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.nc", "run.toml"]
+    assert resumed_or_refused(out, whole) == "same"
+
+
+FILE_SIZE_LIMIT = """
+import resource, signal, sys
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # the write fails with EFBIG instead of killing the process
+limit = int(sys.argv[1])
+resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+from nhsde.runs import main
+sys.exit(main(["simulate", "--config", sys.argv[2], "--out", sys.argv[3], "--no-progress"]))
+"""
+
+
+def test_the_file_size_limit_ends_with_one_line_and_the_file_intact(runs, tmp_path):
+    """Resumed under a file-size limit of the partial file's size, the next write fails (EFBIG): one line, exit 1,
+    no signal (no crash as the HDF5 handle is freed), the two pieces written still load and resume bitwise."""
+    whole, partial = runs
+    out = tmp_path / "run.nc"
+    shutil.copy(partial, out)
+    before = out.read_bytes()
+    cfg = tmp_path / "run.toml"
+    cfg.write_text(BASE_TOML)
+    child = subprocess.run(
+        [sys.executable, "-c", FILE_SIZE_LIMIT, str(len(before)), str(cfg), str(out)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert child.returncode == 1, (
+        signal.Signals(-child.returncode) if child.returncode < 0 else child.returncode,
+        child.stderr,
+    )
+    assert child.stderr == f"nhsde simulate: cannot write {out} (File too large); it keeps what it held before\n"
+    assert out.read_bytes() == before and load_run(out).attrs["pieces_done"] == 2
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run.nc", "run.toml"]
     assert resumed_or_refused(out, whole) == "same"
 

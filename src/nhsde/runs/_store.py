@@ -9,15 +9,14 @@ float64 moment sums of every piece (``piece_sum_z``, ``piece_sum_zz``,
 (``paths`` over ``path × time × name``, ``failed``), and as attributes the
 validated configuration (JSON), the scene's parameters, solver, times, seed and
 key data, counts, whether the run is complete, the package versions, the
-SHA-256 of the package's sources (``source``), for a scene of the user's
-(``MODULE:CLASS`` or installed) the SHA-256 of its module's source
-(``scene_source``), the git revision (information only) and a ``checksum``
-(SHA-256 of the data variables and the other attributes).  ``nhsde simulate
-SCENE`` adds ``d_mean_d_eps``, ``d_mean_d_nu``,
+SHA-256 of the package's sources (``source``), the git revision (information
+only) and a ``checksum`` (SHA-256 of the data variables, the coordinates and
+the other attributes).  ``nhsde simulate SCENE`` adds ``d_mean_d_eps``, ``d_mean_d_nu``,
 ``d_cov_d_eps``, ``d_cov_d_nu``.
 
-Every file is written to ``PATH.partial`` (created afresh: a link there is
-replaced, never followed), synced and renamed to ``PATH``; the writer holds
+Every file is serialised in memory, written to ``PATH.partial`` (created
+afresh: a link there is replaced, never followed), synced and renamed to
+``PATH``; the writer holds
 ``PATH.lock`` (``flock``) meanwhile, so a second process is refused.  An output
 path is checked before any work; a file there that cannot be read, fails its
 checksum, is of another kind or configuration, or has impossible counts, is
@@ -50,7 +49,6 @@ import numpy as np
 import xarray as xr
 
 from .._ensemble import Ensemble, MomentSums
-from ..scenes import scene_source_hash
 from ._config import Built, ConfigError, RunConfig
 from ._distributed import agree, digest, is_writer, several, to_host
 
@@ -71,7 +69,8 @@ __all__ = [
 
 FORMAT = "nhsde-run"
 FIT_FORMAT = "nhsde-fit"
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
+"""3: the checksum covers the coordinates (``time``, ``name``, ``name2``, ``role``)."""
 _PACKAGE = Path(__file__).resolve().parents[1]  # the nhsde package as imported
 
 _SUMS = ("piece_sum_z", "piece_sum_zz", "piece_sum_zzz", "piece_sum_zzzz")
@@ -119,13 +118,10 @@ def source_hash(package: Path = _PACKAGE) -> str:
     return h.hexdigest()
 
 
-def provenance(config: RunConfig) -> dict:
-    """Versions, sources (the package's and, for a scene of the user's, its module's), git revision, time."""
-    scene = scene_source_hash(config.scene_class)
+def provenance() -> dict:
     return {
         "versions": json.dumps(versions(), sort_keys=True),
         "source": source_hash(),
-        **({} if scene is None else {"scene_source": scene}),
         "git_revision": git_revision(),
         "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
     }
@@ -233,14 +229,18 @@ def dataset(config: RunConfig, built: Built, pieces: Pieces, prov: dict, extra: 
 
 
 def checksum(ds: xr.Dataset) -> str:
-    """SHA-256 of ``ds``' data variables and attributes (but ``checksum``): name, dtype, shape and bytes of each."""
+    """SHA-256 of ``ds``' data variables, coordinates and attributes (but ``checksum``): name, dtype, shape and bytes
+    of each."""
     h = hashlib.sha256()
     items = [("var " + str(k), ds[k].values) for k in sorted(map(str, ds.data_vars))]
+    items += [("coord " + str(k), ds[k].values) for k in sorted(map(str, ds.coords))]
     items += [("attr " + k, v) for k, v in sorted(ds.attrs.items()) if k != "checksum"]
     for name, value in items:
         a = np.array(value)
         if a.dtype.kind == "f":
             a[np.isnan(a)] = np.nan  # netCDF readers return their own NaN for a stored one
+        elif a.dtype.kind == "O":
+            a = a.astype(str)  # strings read back as objects: hash their characters, not the pointers
         h.update(f"{name} {a.dtype.str} {a.shape}\n".encode() + a.tobytes())
     return h.hexdigest()
 
@@ -254,9 +254,11 @@ def seal(ds: xr.Dataset) -> xr.Dataset:
 def write(ds: xr.Dataset, path: Path):
     """Write ``ds`` to exactly ``path``, atomically: a reader never sees a half-written file.
 
-    It goes to ``PATH.partial`` first (created afresh: a link there is replaced,
-    never followed), is synced, then renamed; after a failure (a full disk)
-    ``path`` still holds what it held, and the OSError names it.  Over several
+    It is serialised in memory (so a failing disk never meets an open HDF5
+    handle), written to ``PATH.partial`` (created afresh: a link there is
+    replaced, never followed), synced, then renamed; after a failure (a full
+    disk, the file-size limit) ``path`` still holds what it held, and the
+    OSError names it and the cause.  Over several
     processes only process 0 writes; then the processes agree (a collective, so
     every process calls ``write`` alike): a failed write raises in all, as do
     numbers that differ between processes.
@@ -274,17 +276,18 @@ def write(ds: xr.Dataset, path: Path):
 
 
 def data_digest(ds: xr.Dataset) -> str:
-    """SHA-256 of ``ds``' data variables: name, dtype, shape and bytes of each (NaNs alike)."""
+    """SHA-256 of ``ds``' data variables and their coordinates: name, dtype, shape and bytes of each (NaNs alike)."""
     return checksum(xr.Dataset({k: ds[k] for k in ds.data_vars}))
 
 
 def _write_here(ds: xr.Dataset, path: Path):
     """:func:`write` in the process that writes."""
     tmp = path.with_name(path.name + ".partial")
+    data = ds.to_netcdf(engine="h5netcdf")  # bytes: h5py writing to a failing disk can crash when its handle is freed
     try:
         tmp.unlink(missing_ok=True)
-        with open(tmp, "x+b") as f:  # "x": a new file, never through a link
-            ds.to_netcdf(f, engine="h5netcdf")
+        with open(tmp, "xb") as f:  # "x": a new file, never through a link
+            f.write(data)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -307,7 +310,16 @@ def load_run(path) -> xr.Dataset:
     except Exception as e:  # a damaged file fails inside h5py in many ways
         raise ConfigError(f"{path}: cannot be read as netCDF ({type(e).__name__}: {e}).") from None
     if "checksum" in ds.attrs and ds.attrs["checksum"] != checksum(ds):
-        raise ConfigError(f"{path} is damaged or was edited: its contents do not match its checksum.")
+        version = ds.attrs.get("format_version")
+        if version in range(1, FORMAT_VERSION):
+            raise ConfigError(
+                f"{path} is of format version {version}, whose checksum this version of nhsde does not check "
+                f"(format version {FORMAT_VERSION} covers the coordinates too); rerun it to read it here."
+            )
+        raise ConfigError(
+            f"{path} is damaged or was edited: its contents (data, coordinates or attributes) do not "
+            "match its checksum."
+        )
     return ds
 
 
@@ -410,20 +422,16 @@ def _claim_here(path: Path, config: RunConfig, fmt: str) -> Iterator[xr.Dataset 
         os.close(fd)
 
 
-_WHAT = {"scene_source": "the scene's module source (SHA-256)"}
-
-
 def resume(ds: xr.Dataset, path: Path, config: RunConfig) -> tuple[Pieces, dict]:
     """The pieces and provenance of the run file ``ds`` at ``path`` (from :func:`claim`), after checking its counts
-    and that the same code (package versions and sources, the scene's module's too) started it."""
-    keys = ("versions", "source", "scene_source", "git_revision", "created")
-    prov = {key: ds.attrs[key] for key in keys if key in ds.attrs}
-    now = provenance(config)
-    for key in ("versions", "source", "scene_source"):
-        if prov.get(key) != now.get(key):
+    and that the same code (package versions and sources) started it."""
+    prov = {key: ds.attrs[key] for key in ("versions", "source", "git_revision", "created")}
+    now = provenance()
+    for key in ("versions", "source"):
+        if prov[key] != now[key]:
             raise ConfigError(
-                f"{path} was started with {_WHAT.get(key, key)} {prov.get(key)}, now {now.get(key)}; "
-                "its paths could differ, so it cannot be resumed here: delete it or choose another output file."
+                f"{path} was started with {key} {prov[key]}, now {now[key]}; its paths could differ, "
+                "so it cannot be resumed here: delete it or choose another output file."
             )
     n, chunk = config.data["paths"]["n"], config.data["paths"]["chunk"]
     sizes = np.array([min(chunk, n - k * chunk) for k in range(ds.sizes["piece"])])
