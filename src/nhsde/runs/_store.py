@@ -9,9 +9,11 @@ float64 moment sums of every piece (``piece_sum_z``, ``piece_sum_zz``,
 (``paths`` over ``path × time × name``, ``failed``), and as attributes the
 validated configuration (JSON), the scene's parameters, solver, times, seed and
 key data, counts, whether the run is complete, the package versions, the
-SHA-256 of the package's sources (``source``), the git revision (information
-only) and a ``checksum`` (SHA-256 of the data variables, the coordinates and
-the other attributes).  ``nhsde simulate SCENE`` adds ``d_mean_d_eps``, ``d_mean_d_nu``,
+SHA-256 of the package's sources (``source``), for a scene of the user's
+(``MODULE:CLASS`` or installed) the SHA-256 of its module's source
+(``scene_source``), the git revision (information only) and a ``checksum``
+(SHA-256 of the data variables, the coordinates and the other attributes).
+``nhsde simulate SCENE`` adds ``d_mean_d_eps``, ``d_mean_d_nu``,
 ``d_cov_d_eps``, ``d_cov_d_nu``.
 
 Every file is serialised in memory, written to ``PATH.partial`` (created
@@ -49,6 +51,7 @@ import numpy as np
 import xarray as xr
 
 from .._ensemble import Ensemble, MomentSums
+from ..scenes import scene_source_hash
 from ._config import Built, ConfigError, RunConfig
 from ._distributed import agree, digest, is_writer, several, to_host
 
@@ -118,10 +121,13 @@ def source_hash(package: Path = _PACKAGE) -> str:
     return h.hexdigest()
 
 
-def provenance() -> dict:
+def provenance(config: RunConfig) -> dict:
+    """Versions, sources (the package's and, for a scene of the user's, its module's), git revision, time."""
+    scene = scene_source_hash(config.scene_class)
     return {
         "versions": json.dumps(versions(), sort_keys=True),
         "source": source_hash(),
+        **({} if scene is None else {"scene_source": scene}),
         "git_revision": git_revision(),
         "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
     }
@@ -422,16 +428,20 @@ def _claim_here(path: Path, config: RunConfig, fmt: str) -> Iterator[xr.Dataset 
         os.close(fd)
 
 
+_WHAT = {"scene_source": "the scene's module source (SHA-256)"}
+
+
 def resume(ds: xr.Dataset, path: Path, config: RunConfig) -> tuple[Pieces, dict]:
     """The pieces and provenance of the run file ``ds`` at ``path`` (from :func:`claim`), after checking its counts
-    and that the same code (package versions and sources) started it."""
-    prov = {key: ds.attrs[key] for key in ("versions", "source", "git_revision", "created")}
-    now = provenance()
-    for key in ("versions", "source"):
-        if prov[key] != now[key]:
+    and that the same code (package versions and sources, the scene's module's too) started it."""
+    keys = ("versions", "source", "scene_source", "git_revision", "created")
+    prov = {key: ds.attrs[key] for key in keys if key in ds.attrs}
+    now = provenance(config)
+    for key in ("versions", "source", "scene_source"):
+        if prov.get(key) != now.get(key):
             raise ConfigError(
-                f"{path} was started with {key} {prov[key]}, now {now[key]}; its paths could differ, "
-                "so it cannot be resumed here: delete it or choose another output file."
+                f"{path} was started with {_WHAT.get(key, key)} {prov.get(key)}, now {now.get(key)}; "
+                "its paths could differ, so it cannot be resumed here: delete it or choose another output file."
             )
     n, chunk = config.data["paths"]["n"], config.data["paths"]["chunk"]
     sizes = np.array([min(chunk, n - k * chunk) for k in range(ds.sizes["piece"])])
