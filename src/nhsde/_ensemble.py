@@ -20,13 +20,65 @@ from equinox import AbstractVar
 from jaxtyping import Array, Bool, Float, Int
 
 from ._brownian import BLOCK
-from ._misc import check_number
+from ._misc import check_number, is_concrete
 
-__all__ = ["AbstractMoments", "Ensemble", "MomentSums", "Save", "SimulationError"]
+__all__ = ["AbstractMoments", "Ensemble", "MomentSums", "Save", "SimulationError", "SimulationResult", "check_result"]
+
+MIN_PATHS = 4
+"""Fewest paths a run may have: a covariance and the standard error of its estimate need four."""
 
 
 class SimulationError(RuntimeError):
     """Paths failed (non-finite state or a solver error code) and ``on_failure='raise'``."""
+
+
+class SimulationResult(eqx.Enumeration):
+    """How a run ended: the one failure channel of ``simulate`` and the estimators built on it.
+
+    Computed inside the compiled run and checked once by :func:`check_result`: raised at
+    once when the run is called plainly, attached to every output with ``eqx.error_if``
+    under ``jit``, ``grad`` and ``vmap``, with the same cause and fix.
+    """
+
+    successful = ""
+    unstable_step = (
+        "the step is at or beyond the solver's stability limit on this system's linear friction (a damped mode "
+        "is not damped by the solver: e.g. eps·dt ≥ 1 for Euler on the ball); take dt smaller, or use "
+        "solver='exponential', which is stable at any step."
+    )
+    paths_failed = (
+        "some paths failed (non-finite state or solver error); try a smaller dt, a stiffer-stable solver, or "
+        "on_failure='exclude' to inspect them."
+    )
+    too_few_paths = (
+        f"fewer than {MIN_PATHS} paths succeeded; statistics and their standard errors need ≥ {MIN_PATHS}: try a "
+        "smaller dt or a stiffer-stable solver."
+    )
+    moments_overflow = "the moment sums overflow (statistics not finite); use float64 states (jax_enable_x64)."
+
+
+def failure_result(*, unstable, n_failed, n_used, raise_on_failure: bool, overflow) -> SimulationResult:
+    """The run's :class:`SimulationResult` from its flags (traced or not), the cause first."""
+    result = SimulationResult.where(overflow, SimulationResult.moments_overflow, SimulationResult.successful)
+    if raise_on_failure:
+        result = SimulationResult.where(n_failed > 0, SimulationResult.paths_failed, result)
+    result = SimulationResult.where(n_used < MIN_PATHS, SimulationResult.too_few_paths, result)
+    return SimulationResult.where(unstable, SimulationResult.unstable_step, result)
+
+
+def check_result(outputs, result: SimulationResult, caller: str, details: str = ""):
+    """``outputs`` once ``result`` is checked: the one place a failed run is reported.
+
+    Concrete (a plain call): raises :class:`SimulationError` naming ``caller``, the
+    cause and the fix, with ``details`` (counts, the first failed path).  Traced
+    (under ``jit``, ``grad``, ``vmap``): every leaf of ``outputs`` carries the same
+    check, so no output of a failed run can be used, whichever is read.
+    """
+    if is_concrete(result):
+        if result != SimulationResult.successful:
+            raise SimulationError(f"{caller}: {details}{SimulationResult[result]}")
+        return outputs
+    return result.error_if(outputs, result != SimulationResult.successful)
 
 
 def _tuple_of_names(names):
@@ -162,14 +214,25 @@ class MomentSums(eqx.Module):
         return self.add_blocks(self.block_sums(obs, valid))
 
     def statistics(self):
-        """``(mean, cov, mean_se, cov_se)``: sample mean, unbiased covariance and their Monte-Carlo errors."""
+        """``(mean, cov, mean_se, cov_se)``: sample mean, unbiased covariance and their Monte-Carlo errors.
+
+        The variance of the unbiased covariance ``s_ij`` of ``n`` paths is exactly
+        ``(μ₂₂ − σ_ij²)/n + (σ_ii σ_jj + σ_ij²)/(n(n − 1))``, ``μ₂₂ = E[(z_i − a_i)²(z_j − a_j)²]``;
+        it is estimated with the sample's own central moments ``m`` (divided by ``n``), whose
+        first term ``m₂₂ − m_ij²`` is ≥ 0 (Cauchy–Schwarz) and whose second is > 0 for any
+        non-degenerate sample: no standard error is zero unless the sample is.
+        """
         nf = self.count.astype(self.s1.dtype)
         mean = self.shift + self.s1 / nf
-        cov = (self.s2 - jnp.einsum("ni,nj->nij", self.s1, self.s1) / nf) / jnp.maximum(nf - 1, 1)
+        m2 = (self.s2 - jnp.einsum("ni,nj->nij", self.s1, self.s1) / nf) / nf  # central, divided by n
+        cov = m2 * nf / jnp.maximum(nf - 1, 1)
         mean_se = _safe_sqrt(jnp.diagonal(cov, axis1=1, axis2=2) / nf)
         fourth = _central_product_moment(self.s1 / nf, self.s2 / nf, self.s3 / nf, self.s4 / nf)
-        cov_se = _safe_sqrt((fourth - cov**2) / nf)
-        return mean, cov, mean_se, cov_se
+        var = jnp.diagonal(m2, axis1=1, axis2=2)
+        cov_var = jnp.maximum(fourth - m2**2, 0.0) / nf + (var[:, :, None] * var[:, None, :] + m2**2) / (
+            nf * jnp.maximum(nf - 1, 1)
+        )
+        return mean, cov, mean_se, _safe_sqrt(cov_var)
 
 
 class AbstractMoments(eqx.Module):

@@ -18,7 +18,9 @@ about 1 GiB, so its memory is bounded by the steps per save interval.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+import warnings
 from collections.abc import Callable
 from typing import Literal, cast
 
@@ -31,18 +33,16 @@ import jax.random as jr
 import numpy as np
 
 from ._brownian import BLOCK, StepIncrement, block_keys
-from ._ensemble import Ensemble, MomentSums, Save, SimulationError
+from ._ensemble import MIN_PATHS, Ensemble, MomentSums, Save, SimulationResult, check_result, failure_result
 from ._misc import cast_floats, check_key, check_number, check_steps, is_concrete
 from ._options import AbstractSteps, AdaptiveSteps, Batching, FixedSteps
 from ._params import check_ranges, validated
-from ._solvers import ExponentialEuler, SolverNeeds, solver_needs
+from ._solvers import SOLVERS, ExponentialEuler, SolverNeeds, solver_needs
 from ._system import StochasticSystem
 from ._weak import WeakIncrement
 
 __all__ = ["MAX_PATH_INDEX", "MIN_PATHS", "simulate"]
 
-MIN_PATHS = 4
-"""Fewest paths a run may have: a covariance and the standard error of its estimate need four."""
 MAX_PATH_INDEX = 2**31 - 1
 """Paths ``0 … MAX_PATH_INDEX − 1`` of a key have distinct noise (path indices are 32-bit integers)."""
 
@@ -68,6 +68,8 @@ class _Plan:
     per_path_y0: bool
     devices: tuple
     checkpoint: bool
+    raise_on_failure: bool
+    traced_stability: bool
 
     @property
     def intervals(self) -> int:
@@ -96,40 +98,41 @@ def _fixed_chunk(system, params, needs: SolverNeeds, plan: _Plan, y0, key, first
         drift = dfx.ODETerm(lambda t, y, args: system.drift_fn(t_start + t, y, args))
         return dfx.MultiTerm(drift, dfx.ControlTerm(lambda t, y, args: system.diffusion_fn(t_start + t, y, args), path))
 
-    def lane_step(y, t, increment):
-        y1, _, _, _, result = solver.step(terms(increment, t), 0.0 * dt, dt, y, params, None, False)
+    def lane_step(y, y_start, alive, t, increment):
+        # A failed lane keeps its last finite state and is excluded from every statistic.  It is no
+        # longer stepped from that state (where the step overflows) but from its constant start, so
+        # its zero cotangents meet finite Jacobians: reverse-mode gradients equal forward mode's.
+        y_in = jnp.where(alive, y, jax.lax.stop_gradient(y_start))
+        y1, _, _, _, result = solver.step(terms(increment, t), 0.0 * dt, dt, y_in, params, None, False)
         good = (result == dfx.RESULTS.successful) & jnp.all(jnp.isfinite(y1))
-        # a failed lane keeps its last finite state: it is excluded from every statistic, and its
-        # reverse-mode cotangents stay finite (zero), so gradients equal forward mode's
-        return jnp.where(good, y1, y), good
+        return jnp.where(good & alive, y1, y), good
 
-    def block_step(y, k, block_key, block):
+    def block_step(y, y_start, alive, k, block_key, block):
         # one draw per block; each lane gets its row through vmap
         increments = system.noise.block_increment(
             block_key, block, k, base_dt, (system.noise_dim,), plan.substeps, needs.levy_area
         )
         t = t0 + k.astype(dtype) * dt
-        return jax.vmap(lane_step, in_axes=(0, None, 0))(y, t, increments)
+        return jax.vmap(lane_step, in_axes=(0, 0, 0, None, 0))(y, y_start, alive, t, increments)
 
-    step = jax.vmap(block_step, in_axes=(0, None, 0, 0))
+    step = jax.vmap(block_step, in_axes=(0, 0, 0, None, 0, 0))
 
     def interval(carry, j):
         y, ok, meter_state = carry
 
         def body(state, _):
             y, ok, k = state
-            y1, good = step(y, k, keys, blocks)
+            y1, good = step(y, y_start, ok, k, keys, blocks)
             return (y1, ok & good, k + 1), None
 
         # the step counter rides in the carry: no per-step arrays, memory independent of steps
         start = (j * per_save).astype(jnp.int32)
         (y, ok, _), _ = jax.lax.scan(body, (y, ok, start), None, length=per_save)
-        ok = ok & jnp.all(jnp.isfinite(y), axis=-1)
         done = chunk_index * plan.intervals + j + 1
         meter_state = meter.step(meter_state, jnp.asarray(done, dtype) / total_ticks)
         return (y, ok, meter_state), observe(t0 + ((j + 1) * per_save).astype(dtype) * dt, y, params)
 
-    y = y0.reshape(nb, BLOCK, -1)
+    y = y_start = y0.reshape(nb, BLOCK, -1)
     # The solvers used here keep no state between steps; init only runs diffrax's checks.
     first = system.noise.block_increment(
         keys[0], blocks[0], jnp.int32(0), base_dt, (system.noise_dim,), plan.substeps, needs.levy_area
@@ -279,49 +282,151 @@ def _run(system: StochasticSystem, needs: SolverNeeds, y0, key, first_path, abou
         failed = bad_all.reshape(-1)[: plan.n_paths]  # pyright: ignore[reportPossiblyUnbound]
         paths = obs_all.reshape(total, plan.n_save, -1)[: plan.n_paths]  # pyright: ignore[reportPossiblyUnbound]
     ts = jnp.linspace(plan.t0, plan.t1, plan.n_save, dtype=y0.dtype)
-    return ts, sums, failures, failed, paths
+    moments = sums.statistics()
+    unstable = False
+    if plan.traced_stability:  # traced parameters: the stability limit is checked here, with the eager check's cause
+        work = _work_dtype(y0.dtype)
+        step = jnp.asarray((plan.t1 - plan.t0) / plan.n_steps, work)
+        unstable, off, _ = _linear_modes(system, needs, jax.lax.stop_gradient(cast_floats(params, work)), step)
+        jax.debug.callback(
+            functools.partial(_warn_variance, solver=needs.name, dt=(plan.t1 - plan.t0) / plan.n_steps), off
+        )
+    result = failure_result(
+        unstable=unstable,
+        n_failed=failures[0],
+        n_used=sums.count,
+        raise_on_failure=plan.raise_on_failure,
+        overflow=~jnp.all(jnp.array([jnp.all(jnp.isfinite(m)) for m in moments])),
+    )
+    return ts, sums, moments, failures, failed, paths, result
+
+
+def _zero_increment(levy_area: type, dt, w, h):
+    """A step's increment of the driver's type with Brownian part ``w`` and space-time Lévy area ``h``."""
+    if levy_area is dfx.SpaceTimeLevyArea:
+        return dfx.SpaceTimeLevyArea(dt=dt, W=w, H=h)
+    if issubclass(levy_area, WeakIncrement):
+        return levy_area(dt=dt, W=w, V=jnp.zeros((w.shape[0],) * 2, w.dtype))
+    return w
+
+
+def _mode_step(needs: SolverNeeds, lam, dt, z, w, h):
+    """One step of the solver on ``dz = λ z dt + dW`` for a complex ``λ``: the real 2 × 2 system of ``(Re z, Im z)``."""
+    x, y = jnp.real(lam).astype(dt.dtype), jnp.imag(lam).astype(dt.dtype)
+    m = jnp.stack([jnp.stack([x, -y]), jnp.stack([y, x])])
+    path = StepIncrement(increment=_zero_increment(needs.levy_area, dt, w, h), levy_area=needs.levy_area)
+    terms = dfx.MultiTerm(
+        dfx.ODETerm(lambda t, z, args: m @ z),
+        dfx.ControlTerm(lambda t, z, args: jnp.eye(2, dtype=z.dtype), path),
+    )
+    return needs.solver.step(terms, 0.0 * dt, dt, z, None, None, False)[0]
+
+
+_DAMPED = -1e-3
+"""A mode with ``Re(λ)·h`` below this is damped enough that any consistent solver damps it at small steps."""
 
 
 @eqx.filter_jit
-def _linear_propagator(system: StochasticSystem, needs: SolverNeeds, params, dt):
-    """``R(A·dt)``: one noiseless step of the solver on ``dZ = A Z dt`` from each unit vector, ``A`` the declared
-    linear drift, with a zero noise increment."""
+def _linear_modes(system: StochasticSystem, needs: SolverNeeds, params, dt):
+    """``(unstable, variance factor, largest gain)`` of the solver on the declared linear drift ``A``.
+
+    Per eigenvalue ``λ = x + iy`` of ``A``: ``R(λh)`` is the solver's amplification on
+    ``dz = λ z dt + dW`` (one noiseless step).  Unstable: ``|R| ≥ 1`` on a mode the exact flow
+    damps (the limit included), or ``|R| > 1`` on any mode while the exact flow decays.  On a
+    stably damped mode the scheme's stationary variance is ``q/(1 − |R|²)``, ``q`` the variance
+    one step adds, against the exact ``1/(2|x|)``; the factor returned is the ratio furthest
+    from 1 (Euler–Maruyama on a real ``λ``: ``1/(1 − |λ|h/2)``, 2× at the ball's ``ε·dt = 1/2``).
+    """
     a = cast(Callable, system.linear_drift)(params).astype(dt.dtype)  # declared: checked by the caller
-    d = a.shape[0]
-    zero = jnp.zeros((system.noise_dim,), dt.dtype)  # the noise is switched off: a zero increment
-    if needs.levy_area is dfx.SpaceTimeLevyArea:
-        increment = dfx.SpaceTimeLevyArea(dt=dt, W=zero, H=zero)
-    elif issubclass(needs.levy_area, WeakIncrement):
-        increment = needs.levy_area(dt=dt, W=zero, V=jnp.zeros((system.noise_dim,) * 2, dt.dtype))
-    else:
-        increment = zero
-    path = StepIncrement(increment=increment, levy_area=needs.levy_area)
-    terms = dfx.MultiTerm(
-        dfx.ODETerm(lambda t, y, args: a @ y),
-        dfx.ControlTerm(lambda t, y, args: jnp.zeros((d, system.noise_dim), y.dtype), path),
-    )
-    step = lambda e: needs.solver.step(terms, 0.0 * dt, dt, e, params, None, False)[0]
-    return jax.vmap(step, out_axes=1)(jnp.eye(d, dtype=dt.dtype)), a
+    lams = jnp.linalg.eigvals(a)
+    zero = jnp.zeros((2,), dt.dtype)
+
+    def one(lam):
+        propagator = jax.vmap(lambda e: _mode_step(needs, lam, dt, e, zero, zero), out_axes=1)(
+            jnp.eye(2, dtype=dt.dtype)
+        )
+        gain = jnp.sqrt(jnp.abs(jnp.linalg.det(propagator)))  # R(λh)·rotation: |det| = |R|²
+        jw, jh = jax.jacfwd(lambda w, h: _mode_step(needs, lam, dt, zero, w, h), argnums=(0, 1))(zero, zero)
+        added = (dt * jnp.sum(jw**2) + dt / 12 * jnp.sum(jh**2)) / 2  # W ~ N(0, h), H ~ N(0, h/12) per channel
+        x = jnp.real(lam).astype(dt.dtype)
+        factor = added / jnp.maximum(1 - gain**2, jnp.finfo(dt.dtype).tiny) * 2 * jnp.abs(x)
+        return x * dt, gain, factor
+
+    xh, gain, factor = jax.vmap(one)(lams)
+    decays = jnp.max(xh) <= 0
+    unstable = decays & (jnp.any((xh < _DAMPED) & (gain >= 1 - 1e-7)) | jnp.any(gain > 1 + 1e-6))
+    fine = (xh < _DAMPED) & (gain < 1 - 1e-7)
+    off = jnp.where(fine, factor, 1.0)[jnp.argmax(jnp.where(fine, jnp.abs(jnp.log(factor)), -1.0))]
+    return unstable, off, jnp.max(gain)
+
+
+def _checks_linear(system: StochasticSystem, needs: SolverNeeds) -> bool:
+    return system.linear_drift is not None and not isinstance(needs.solver, ExponentialEuler)
+
+
+def _work_dtype(dtype):
+    return jnp.float64 if jnp.finfo(dtype).bits > 32 else jnp.float32
 
 
 def _check_linear_stability(system: StochasticSystem, needs: SolverNeeds, dt: float, dtype) -> None:
-    """Refuse a step at which the solver amplifies the declared linear drift (friction) that the exact flow damps.
+    """Refuse a step at which the solver does not damp the declared linear drift (friction) that the exact flow
+    damps, and warn where its stationary variance there is off by more than 10 %.
 
-    Euler–Maruyama on ``u̇ = −2εu`` multiplies by ``1 − 2εdt`` per step: beyond ``ε·dt = 1`` the paths grow
-    without bound although the friction damps them; known before the run from ``StochasticSystem.linear_drift``.
+    Euler–Maruyama on ``u̇ = −2εu`` multiplies by ``1 − 2εdt`` per step: from ``ε·dt = 1`` on the paths
+    no longer decay although the friction damps them; known before the run from
+    ``StochasticSystem.linear_drift``.  Traced parameters are checked inside the run with the
+    same cause and fix (:class:`~nhsde.SimulationResult`).
     """
-    if system.linear_drift is None or isinstance(needs.solver, ExponentialEuler) or not is_concrete(system.params):
+    if not _checks_linear(system, needs) or not is_concrete(system.params):
         return
-    work = jnp.float64 if jnp.finfo(dtype).bits > 32 else jnp.float32
+    work = _work_dtype(dtype)
     with jax.ensure_compile_time_eval():  # concrete parameters: known now, also under an outer jit
-        propagator, a = _linear_propagator(system, needs, cast_floats(system.params, work), jnp.asarray(dt, work))
-    grows = np.max(np.abs(np.linalg.eigvals(np.asarray(propagator, np.float64))))
-    decays = np.max(np.real(np.linalg.eigvals(np.asarray(a, np.float64)))) <= 0
-    if decays and grows > 1 + 1e-6:
-        raise ValueError(
-            f"dt={dt}: solver {needs.name!r} is unstable on this system's linear friction at this step (one step "
-            f"multiplies it by up to {grows:.3g} while the exact flow decays); take dt smaller, or use "
-            "solver='exponential', which is stable at any step."
+        unstable, off, gain = _linear_modes(system, needs, cast_floats(system.params, work), jnp.asarray(dt, work))
+        if bool(unstable):
+            fix = SimulationResult[SimulationResult.unstable_step].split("; ", 1)[1]
+            raise ValueError(
+                f"dt={dt}: solver {needs.name!r} is unstable on this system's linear friction at this step (at or "
+                f"beyond its stability limit: one step multiplies a mode by up to {float(gain):.3g} while the exact "
+                f"flow damps it); {fix}"
+            )
+        if abs(float(off) - 1) > 0.1:
+            warnings.warn(_variance_message(system, needs, dt, float(off), work), stacklevel=3)
+
+
+def _variance_message(system: StochasticSystem, needs: SolverNeeds, dt: float, off: float, work) -> str:
+    """The warning for a stationary variance off by more than 10 %: the factor, the step and the solvers that
+    bring it within 10 %."""
+    params = cast_floats(system.params, work)
+
+    def within(n: SolverNeeds, step: float) -> bool:
+        unstable, off, _ = _linear_modes(system, n, params, jnp.asarray(step, work))
+        return not bool(unstable) and abs(float(off) - 1) <= 0.1
+
+    step = next((dt / 2**k for k in range(1, 30) if within(needs, dt / 2**k)), dt / 2**30)
+    others = []
+    for name in SOLVERS:
+        try:
+            other = solver_needs(name, system)
+        except ValueError:
+            continue
+        if name != needs.name and _checks_linear(system, other) and within(other, dt):
+            others.append(repr(name))
+    alternative = f", or solver={' / '.join(others)} at this step" if others else ""
+    return (
+        f"dt={dt}: solver {needs.name!r} has a stationary variance {off:.3g}× the exact one on this system's "
+        f"linear friction (off by more than 10 %); dt ≤ {step:.3g} brings it within 10 %{alternative}."
+    )
+
+
+def _warn_variance(off, solver: str, dt: float) -> None:
+    """Host side of the traced variance check: warn once per place where the factor is off by more than 10 %."""
+    worst = np.asarray(off, np.float64).reshape(-1)
+    worst = worst[np.argmax(np.abs(np.log(worst)))]
+    if abs(worst - 1) > 0.1:
+        warnings.warn(
+            f"dt={dt}: solver {solver!r} has a stationary variance {worst:.3g}× the exact one on this system's "
+            "linear friction (off by more than 10 %); take dt smaller (the warning called plainly names the step).",
+            stacklevel=2,
         )
 
 
@@ -504,39 +609,21 @@ def simulate(
         per_path_y0=y0.ndim == 2,
         devices=devices,
         checkpoint=bool(checkpoint),
+        raise_on_failure=on_failure == "raise",
+        traced_stability=_checks_linear(system, needs) and not is_concrete(system.params),
     )
     meter = dfx.NoProgressMeter() if progress_meter is None else progress_meter
     if not isinstance(meter, dfx.AbstractProgressMeter):
         raise TypeError(
             f"progress_meter={meter!r}; expected a diffrax progress meter, e.g. diffrax.TqdmProgressMeter()."
         )
-    ts, sums, (n_failed, first_failed), failed, paths = _run(
+    ts, sums, moments, (n_failed, first_failed), failed, paths, result = _run(
         system, needs, y0, key, jnp.asarray(first_path), about, plan, meter
     )
-    mean, cov, mean_se, cov_se = sums.statistics()
-    too_few = sums.count < MIN_PATHS
-    overflow = ~jnp.all(jnp.array([jnp.all(jnp.isfinite(s)) for s in (mean, cov, mean_se, cov_se)]))
-    if is_concrete(n_failed):
-        if on_failure == "raise" and int(n_failed) > 0:
-            raise SimulationError(
-                f"{int(n_failed)} of {n_paths} paths failed (non-finite state or solver error), first path "
-                f"{int(first_failed)}; "
-                f"try a smaller dt, a stiffer-stable solver, or on_failure='exclude' to inspect them."
-            )
-        if bool(too_few):
-            raise SimulationError(
-                f"only {int(sums.count)} of {n_paths} paths succeeded ({int(n_failed)} failed); statistics need "
-                f"≥ {MIN_PATHS}: try a smaller dt or a stiffer-stable solver."
-            )
-        if bool(overflow):
-            raise SimulationError(
-                f"the moment sums overflow {y0.dtype} (statistics not finite); use float64 states (jax_enable_x64)."
-            )
-    else:
-        if on_failure == "raise":
-            mean = eqx.error_if(mean, n_failed > 0, "simulate: some paths failed (non-finite state or solver error).")
-        mean = eqx.error_if(mean, too_few, f"simulate: fewer than {MIN_PATHS} paths succeeded.")
-        mean = eqx.error_if(mean, overflow, "simulate: the moment sums overflow; use float64 states.")
+    details = ""
+    if is_concrete(n_failed) and int(n_failed) > 0:
+        details = f"{int(n_failed)} of {n_paths} paths failed, first path {int(first_failed)}: "
+    mean, cov, mean_se, cov_se, failed, paths = check_result((*moments, failed, paths), result, "simulate", details)
     roles = tuple(
         system.layout.roles[system.layout.index(n)] if n in system.layout.names else "observable" for n in names
     )
