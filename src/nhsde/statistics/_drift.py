@@ -61,15 +61,20 @@ def _names_with_role(ens: AbstractMoments, role: str) -> tuple[str, ...]:
     return tuple(n for n, r in zip(ens.names, ens.roles) if r == role)
 
 
-def drift_statistics(ens: AbstractMoments) -> DriftStatistics:
-    """Systematic and fluctuation drift (6.7) of the saved dependent coordinates.
+def drift_statistics(ens: AbstractMoments, coordinates: tuple[str, ...] | None = None) -> DriftStatistics:
+    """Systematic and fluctuation drift (6.7) of the saved dependent coordinates, or of the coordinates named.
 
-    ``m_{q''}(t) = E q''(t)`` and ``K_{q''}(t) = Cov q''(t)``, read from the saved components whose
-    role is ``dependent_coordinate`` (build the scene with ``drift=True`` and save them).
+    ``m_{q''}(t) = E q''(t)`` and ``K_{q''}(t) = Cov q''(t)``, read by default from the saved components whose
+    role is ``dependent_coordinate`` (a shipped scene built with ``drift=True``; a system from a
+    :class:`~nhsde.mechanics.MechanicalSpec` formulated with ``dependent=(...)``).  ``coordinates`` names
+    the components instead, whatever their roles: e.g. both ``("x", "y")`` of a knife edge, of which one
+    constraint makes only one dependent.
 
     Arguments:
         ens: an :class:`~nhsde.Ensemble` from :func:`~nhsde.simulate` or the moments of
             :func:`normal_approximation`.
+        coordinates: saved names to take the drift statistics of (default: those with role
+            ``dependent_coordinate``).
 
     Returns:
         a :class:`DriftStatistics`: ``systematic`` ``(n, k)``, ``fluctuation`` ``(n, k, k)`` at ``ens.ts``, with
@@ -87,15 +92,37 @@ def drift_statistics(ens: AbstractMoments) -> DriftStatistics:
         (('x', 'y'), None)
         >>> print(float(drift.systematic[-1, 0]), round(float(drift.fluctuation[-1, 0, 0]), 4))
         0.0 0.9247
+        >>> statistics.drift_statistics(moments, coordinates=("y",)).names
+        ('y',)
     """
-    names = _names_with_role(ens, "dependent_coordinate")
-    if not names:
-        raise ValueError(
-            f"no dependent coordinates among the saved {ens.names}; build the scene with drift=True "
-            "and save its position components."
-        )
+    if coordinates is None:
+        names = _names_with_role(ens, "dependent_coordinate")
+        if not names:
+            raise ValueError(_no_dependent_coordinates(ens))
+    else:
+        names = tuple(coordinates) if not isinstance(coordinates, str) else (coordinates,)
+        unknown = [n for n in names if n not in ens.names]
+        if unknown or not names or len(set(names)) != len(names):
+            raise ValueError(
+                f"coordinates={coordinates!r}: name distinct saved components, at least one; saved: {ens.names}."
+            )
     mean, cov, mean_se, cov_se = ens.select(names)
     return DriftStatistics(ens.ts, mean, mean_se, cov, cov_se, names)
+
+
+def _no_dependent_coordinates(ens: AbstractMoments) -> str:
+    """What to do when no saved component is a dependent coordinate: name them, or give them the role."""
+    positions = _names_with_role(ens, "independent_coordinate")
+    name = (positions or ens.names)[:1]
+    fix = f"name the coordinates: drift_statistics(ens, coordinates={name!r}), or "
+    if positions:  # coordinates without the dependent role: a system formulated from a spec (or a rolling body)
+        fix += (
+            f"give them the role when formulating a MechanicalSpec: formulate(spec, route, dependent={name!r}) "
+            "(a spec scene: its class variable dependent); a shipped scene: build it with drift=True."
+        )
+    else:
+        fix += "build the scene with drift=True and save its position components."
+    return f"no dependent coordinates among the saved {ens.names}; {fix}"
 
 
 def systematic_drift(ens: AbstractMoments) -> Float[Array, "n k"]:
@@ -108,7 +135,9 @@ def fluctuation_drift(ens: AbstractMoments) -> Float[Array, "n k k"]:
     return drift_statistics(ens).fluctuation
 
 
-def effective_diffusion(ens: AbstractMoments, t_from: float | None = None) -> Float[Array, "k k"]:
+def effective_diffusion(
+    ens: AbstractMoments, t_from: float | None = None, coordinates: tuple[str, ...] | None = None
+) -> Float[Array, "k k"]:
     """``D = ½ dK_{q''}/dt``, the least-squares slope over save times ``t ≥ t_from``.
 
     In a stationary regime ``K_{q''}(t) ≈ 2 D t + const`` (Green–Kubo); ``t_from``
@@ -117,9 +146,11 @@ def effective_diffusion(ens: AbstractMoments, t_from: float | None = None) -> Fl
     Arguments:
         ens: moments with the dependent coordinates saved (as for :func:`drift_statistics`).
         t_from: first save time of the fit (default: the middle of the run); at least two save times.
+        coordinates: saved names to take it of (default: those with role ``dependent_coordinate``), as for
+            :func:`drift_statistics`.
 
     Returns:
-        ``D``, ``(k, k)`` over the dependent coordinates, differentiable in the system's parameters.
+        ``D``, ``(k, k)`` over the dependent (or named) coordinates, differentiable in the system's parameters.
 
     Examples:
         The ball's ``D = νδ²/(8ε²)`` (S0 §3; ``δ = 5/7``):
@@ -134,7 +165,7 @@ def effective_diffusion(ens: AbstractMoments, t_from: float | None = None) -> Fl
         >>> print(round((5 / 7) ** 2 / 8, 4))
         0.0638
     """
-    stats = drift_statistics(ens)
+    stats = drift_statistics(ens, coordinates)
     ts = ens.ts
     start = ts[-1] / 2 + ts[0] / 2 if t_from is None else t_from
     w = (ts >= start).astype(ts.dtype)
