@@ -10,6 +10,10 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 import gc  # noqa: E402
 import os  # noqa: E402
 
+# the nhsde command turns JAX's persistent compilation cache on in ~/.cache: tests leave the user's cache alone
+# (the cache's own tests point it at a temporary folder)
+os.environ["NHSDE_COMPILATION_CACHE"] = "off"
+
 import equinox as eqx  # noqa: E402
 import pytest  # noqa: E402
 

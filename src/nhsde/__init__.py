@@ -18,6 +18,7 @@ from . import (
     scenes as scenes,
     statistics as statistics,
 )
+from ._compilation_cache import enable_compilation_cache as enable_compilation_cache
 from ._ensemble import (
     AbstractMoments as AbstractMoments,
     Ensemble as Ensemble,

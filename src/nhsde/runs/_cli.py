@@ -22,6 +22,7 @@ from typing import cast
 
 import numpy as np
 
+from .._compilation_cache import enable_compilation_cache
 from ._distributed import add_flags, processes
 from ._fit import fit_data_flags
 
@@ -609,13 +610,15 @@ def main(argv=None) -> int:
 
     0 on success; 2 for bad input (a run file, an option, an output path), 1 for
     a run that failed (failed paths, a full disk), each with a one-line message
-    on stderr.
+    on stderr.  JAX's persistent compilation cache is on, in ``~/.cache/nhsde/jax``
+    (:func:`~nhsde.enable_compilation_cache`; ``NHSDE_COMPILATION_CACHE`` moves it or, ``off``, turns it off).
     """
     from .._ensemble import SimulationError
 
     args = build_parser().parse_args(argv)
     command = {"scenes": _cmd_scenes, "simulate": _cmd_simulate, "fit": _cmd_fit}[args.command]
     try:
+        enable_compilation_cache()  # $NHSDE_COMPILATION_CACHE: another folder, or off
         with (
             _current_directory_on_path(),
             processes(args),
