@@ -12,12 +12,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.stats
+from test_qmc import euler_cov
 
 import nhsde
 from nhsde.noise import CompoundPoisson, NormalJumps
 from nhsde.runs import ConfigError, RunConfig, main
 from nhsde.scenes import BallOnVibratingPlane, ball_covariances
-from nhsde.statistics import QuasiMonteCarloEstimate, to_accuracy
+from nhsde.statistics import QuasiMonteCarloEstimate, multilevel_monte_carlo, to_accuracy
+from nhsde.statistics._cost import best_single, multilevel_plan
 
 DELTA = 1 / 1.4
 BALL = BallOnVibratingPlane(eps=1.0, nu=1.0)
@@ -51,6 +53,10 @@ def test_reaches_the_requested_rmse_on_the_ball():
     chosen = next(a for a in r.alternatives if a.name == r.choice)
     assert chosen.cost == min(a.cost for a in r.alternatives)
     assert r.work > r.pilot_work > 0 and r.estimated_rmse <= 1.5 * eps
+    # honest accounting: the work done is counted, within 2× of the prediction; compile time is part of the seconds
+    assert r.work == r.pilot_work + r.run_work and r.predicted_work / 2 <= r.run_work <= 2 * r.predicted_work
+    assert 0 <= r.compile_seconds <= r.seconds and 0 < r.run_seconds <= r.seconds and math.isnan(r.predicted_seconds)
+    assert f"measured {r.run_work:.3g} in " in r.report() and "s of it compiling" in r.report()
     text = str(r)
     assert "chosen: " + r.choice in text and "multilevel, euler" in text
 
@@ -73,7 +79,8 @@ def test_quasi_monte_carlo_is_priced_and_reaches_the_target_on_the_ball():
     """The report lists quasi-Monte Carlo (Euler) with a finite predicted work, its cost ratio κ measured, its pilot
     counted; run (forced: the alternative's own run), K_xx(1) is within 3 target RMSEs of the closed form (Chebyshev:
     ≥ 89 % if its MSE ≤ ε²; the prediction assumes the Monte-Carlo rate, an upper bound), its standard error below
-    the target, and its derivatives in (ε, ν) within 4 SE (99.99 %) of the closed form's."""
+    the target, its work the path-steps it ran, and its derivatives in (ε, ν) within 4 SE (99.99 %) of the Euler
+    chain's at its step."""
     eps = 0.08 * K_XX
     wrt = ("eps", "nu")
     r = to_accuracy(BALL.build(), Y0, jax.random.key(20), rmse=eps, wrt=wrt, **(FAST | dict(quasi_monte_carlo=True)))
@@ -85,9 +92,12 @@ def test_quasi_monte_carlo_is_priced_and_reaches_the_target_on_the_ball():
     assert "quasi-Monte Carlo, euler" in r.report()
     value, se, bias, work, result = qmc.run()
     assert isinstance(result, QuasiMonteCarloEstimate) and result.replicates == 16
-    assert work == qmc.cost and bias == qmc.bias
+    # the work done is counted (its path-steps), not the prediction (in Euler path-steps, κ each)
+    assert work == int(result.n_paths) * round(1.0 / qmc.dt) == pytest.approx(qmc.cost / qmc.kappa) and bias == qmc.bias
     assert abs(float(value) - K_XX) <= 3 * eps and 0 < float(se) <= eps, (value, se, K_XX, eps)
-    exact = jax.jacfwd(lambda th: ball_covariances(jnp.float64(1.0), th[0], th[1], DELTA)[0])(jnp.array([1.0, 1.0]))
+    # unbiased for the scheme: the Euler chain's derivatives at its step (the target bounds the value's bias only)
+    steps = round(1.0 / qmc.dt)
+    exact = jax.jacfwd(lambda th: euler_cov(th[0], th[1], DELTA, qmc.dt, steps)[0, 0])(jnp.array([1.0, 1.0]))
     assert result.derivatives is not None and result.derivatives.wrt == wrt
     d, d_se = (np.asarray(a[:, -1, 0, 0]) for a in (result.derivatives.d_cov, result.derivatives.d_cov_se))
     assert d.shape == d_se.shape == (2,) and np.all(d_se > 0)
@@ -213,3 +223,46 @@ def test_every_alternative_on_the_ball():
     assert len(r.alternatives) == 14 and all(math.isfinite(a.cost) for a in r.alternatives), r.report()
     assert {p.solver for p in r.pilot} == {"euler", "weak2-gaussian"}
     assert r.choice == "control variate, euler" and abs(r.value - K_XX) <= 3 * eps
+
+
+@pytest.mark.parametrize("h0", [0.25, 2.5])
+def test_the_bias_model_carries_the_coarsest_step(h0):
+    """The bias of a plan at ``h = h₀ 2^{−k}`` is ``bound·h^p`` in time units (``h₀^p`` included), the samples
+    keep ``V/N + bias² ≤ ε²``, and one step coarser would miss the target or cost more; the multilevel plan stops
+    at the first ``L`` with ``bound·h_L^p ≤ ε/√2``."""
+    variance, bound, eps, steps0 = 2.0, 0.3, 0.05, 4
+    for order in (1, 2):
+        cost, k, n, bias = best_single(variance, bound, order, eps, h0, steps0, 1.0)
+        h = h0 / 2**k
+        assert bias == bound * h**order and variance / n + bias**2 <= eps**2
+        coarser = best_single(variance, bound, order, eps, 2 * h, steps0 // 2 or 1, 1.0)
+        assert coarser[1] != 0 or coarser[0] >= cost
+        _, counts, _, levels = multilevel_plan([1.0, 0.1, 0.02], bound, order, eps, steps0, h0, False, 1024)
+        finest = h0 / 2 ** (levels - 1)
+        assert len(counts) == levels >= 3 and bound * finest**order <= eps / math.sqrt(2)
+        assert levels == 3 or bound * (2 * finest) ** order > eps / math.sqrt(2)
+
+
+def test_huge_targets_get_an_answer_and_impossible_ones_a_clear_refusal():
+    """``rmse = 1e300``: the smallest run answers (no overflow); a target whose per-path values would not fit in
+    memory is refused before it runs, with the size, by ``to_accuracy`` and ``multilevel_monte_carlo``."""
+    system, key = BALL.build(), jax.random.key(4)
+    r = to_accuracy(system, Y0, key, rmse=1e300, **FAST)
+    assert math.isfinite(r.value) and r.run_work <= 64 * 4 * 3, r.report()
+    m = multilevel_monte_carlo(system, Y0, key, rmse=1e300, t1=1.0, dt=0.25, target=("cov", "x", "x"))
+    assert math.isfinite(float(m.value)) and len(m.n_paths_per_level) == 3
+    with pytest.raises(ValueError, match=r"^rmse=1e-08: the cheapest way, .* GiB at their peak, more than the"):
+        to_accuracy(system, Y0, key, rmse=1e-8, **FAST)
+    with pytest.raises(ValueError, match=r"^rmse=1e-08: the samples per level .* GiB at their peak"):
+        multilevel_monte_carlo(system, Y0, key, rmse=1e-8, t1=1.0, dt=0.25, target=("cov", "x", "x"))
+    with pytest.raises(ValueError, match=r"^n_paths=\(1000000000000,\) keeps per-path values of"):
+        multilevel_monte_carlo(system, Y0, key, n_paths=(10**12,), t1=1.0, dt=0.25, target=("cov", "x", "x"))
+    config = RunConfig.from_dict(
+        dict(
+            scene="ball-on-vibrating-plane",
+            solver=dict(dt=0.25, t1=1.0),
+            statistics=dict(save_points=2),
+            accuracy=dict(rmse=1e300),
+        )
+    )
+    assert config.data["accuracy"]["rmse"] == 1e300

@@ -54,20 +54,27 @@ from .._brownian import BLOCK
 from .._ensemble import Save
 from .._misc import check_key, check_number, check_span, check_steps, is_concrete
 from .._options import AbstractSteps, Batching, FixedSteps
-from .._simulate import simulate
+from .._simulate import MAX_PATH_INDEX, simulate
 from .._solvers import solver_needs
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
 from ._control_variate import control_variate as linearised_control_variate
+from ._cost import (
+    MAX_REFINEMENTS,
+    best_single,
+    check_memory,
+    compile_clock,
+    memory_limit,
+    multilevel_plan,
+    peak_bytes,
+    whole_pieces,
+)
 from ._extrapolation import coupled_paths, coupling_solver, extrapolate, paired_moments
 from ._multilevel import MultilevelEstimate, multilevel_monte_carlo
 from ._qmc import MAX_DIMENSION, quasi_monte_carlo as randomised_quasi_monte_carlo
 from ._sensitivities import check_wrt
 
 __all__ = ["AccuracyAlternative", "AccuracyResult", "to_accuracy"]
-
-MAX_REFINEMENTS = 24
-"""Finest step considered: ``h₀ 2^{−24}``."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,6 +83,9 @@ class AccuracyAlternative:
 
     ``dt`` is the step (plain Monte Carlo), the coarse step (extrapolation) or ``h₀``
     (multilevel); ``n_paths`` the samples (pairs, with ``antithetic``), per level for multilevel.
+    ``kappa``: the cost of one of its path-steps in plain Euler path-steps (measured for quasi-Monte Carlo,
+    else 1), so that it predicts ``cost/kappa`` path-steps; ``memory``: the bytes its per-path values take at
+    their peak (:mod:`~nhsde.statistics._cost`).
     """
 
     name: str
@@ -89,6 +99,8 @@ class AccuracyAlternative:
     seconds: float = math.nan
     note: str = ""
     pilot_work: float = 0.0
+    kappa: float = 1.0
+    memory: float = 0.0
     run: Callable | None = dataclasses.field(default=None, repr=False, compare=False)
 
 
@@ -120,7 +132,10 @@ class AccuracyResult:
     """The statistic to the requested accuracy: ``value ± standard_error`` with estimated ``bias``.
 
     ``rmse`` is the absolute target, ``work`` the path-steps done (pilot included,
-    ``pilot_work`` of them), ``choice`` the name of the alternative run,
+    ``pilot_work`` of them), ``seconds`` the wall time of the call, ``compile_seconds`` the part of it spent
+    tracing and compiling (JAX's compilation events); the chosen estimator's run was predicted to take
+    ``predicted_work`` path-steps (and ``predicted_seconds``, with ``cost='seconds'``, else ``nan``) and took
+    ``run_work`` path-steps in ``run_seconds`` (compilation included).  ``choice`` the name of the alternative run,
     ``alternatives`` all of them with their predicted work, ``pilot`` one summary
     per solver, ``result`` what the chosen estimator returned.  ``derivative`` and
     ``derivative_se`` ``(len(wrt),)``: the statistic's derivatives in the parameters
@@ -136,6 +151,11 @@ class AccuracyResult:
     work: float
     pilot_work: float
     seconds: float
+    compile_seconds: float
+    predicted_work: float
+    predicted_seconds: float
+    run_work: float
+    run_seconds: float
     choice: str
     reason: str
     alternatives: tuple[AccuracyAlternative, ...]
@@ -155,8 +175,11 @@ class AccuracyResult:
         stat = " ".join(self.statistic)
         lines = [
             f"{stat} at target rmse {self.rmse:.3g}: {self.value:.6g} ± {self.standard_error:.2g} "
-            f"(bias estimate {self.bias:.2g}); work {self.work:.3g} path-steps, pilot {self.pilot_work:.3g}, "
-            f"{self.seconds:.1f} s",
+            f"(bias estimate {self.bias:.2g}); work {self.work:.3g} path-steps, pilot {self.pilot_work:.3g}; "
+            f"{self.seconds:.1f} s, {self.compile_seconds:.1f} s of it compiling",
+            f"run: predicted {self.predicted_work:.3g} path-steps"
+            + (f" in {self.predicted_seconds:.3g} s" if math.isfinite(self.predicted_seconds) else "")
+            + f", measured {self.run_work:.3g} in {self.run_seconds:.3g} s",
             *(
                 f"  d/d{name} = {d:.6g} ± {se:.2g}"
                 for name, d, se in zip(self.wrt, self.derivative, self.derivative_se, strict=True)
@@ -345,81 +368,6 @@ def _pilot(system, y0, key, cand: _Candidate, *, t0, t1, h0, levels, n_paths, sa
     )
 
 
-# --- predicted work ---------------------------------------------------------------------------------------------
-
-
-def _best_single(
-    variance: float,
-    bound: float,
-    order: float,
-    eps: float,
-    steps0: int,
-    cost_factor: float,
-    max_refinements: int = MAX_REFINEMENTS,
-    round_paths: Callable[[float], int] | None = None,
-):
-    """``(cost, k, N, bias bound)`` of the cheapest ``h = h₀ 2^{−k}``, ``k ≤ max_refinements``, with
-    ``N = V/(ε² − (bound h^order)²)`` rounded up by ``round_paths`` (default: to whole pieces)."""
-    best = (math.inf, -1, 0, math.nan)
-    if not math.isfinite(variance) or not math.isfinite(bound):
-        return best
-    for k in range(max_refinements + 1):
-        bias = bound * (1 / 2**k) ** order
-        budget = eps**2 - bias**2
-        if budget <= 0:
-            continue
-        n = round_paths(variance / budget) if round_paths else _whole_pieces(variance / budget)[0]
-        cost = n * steps0 * 2**k * cost_factor
-        if cost < best[0]:
-            best = (cost, k, n, bias)
-    return best
-
-
-def _piece_paths(n: float, cap: int = 4096) -> int:
-    """A piece size for about ``n`` samples: ``64·2^k ≥ n/4`` (at most ``cap``), so that nearby ``n`` share one
-    compiled program and whole pieces overshoot ``n`` by less than a quarter."""
-    k = max(0, math.ceil(math.log2(max(n, 1) / (4 * BLOCK))))
-    return min(cap, BLOCK * 2**k)
-
-
-def _whole_pieces(n: float, cap: int = 2**16) -> tuple[int, int]:
-    """``(total, piece)``: ``n`` rounded up to whole pieces of :func:`_piece_paths`."""
-    piece = _piece_paths(n, cap)
-    return piece * max(1, math.ceil(n / piece)), piece
-
-
-def _multilevel_plan(
-    levels_v: Sequence[float], bound: float, order: int, eps: float, steps0: int, h0: float, anti, base: int
-):
-    """``(cost, N_ℓ, piece_paths, L + 1)`` predicted for :func:`multilevel_monte_carlo`, pieces included.
-
-    Pieces of ``base·4^k`` paths on level 0 (``base`` the pilot's paths), at least ``N_0/16``: targets
-    close to one another share the compiled programs of each level."""
-    v = [max(x, 1e-300) for x in levels_v]
-    if not all(math.isfinite(x) for x in v) or not math.isfinite(bound):
-        return math.inf, (), 0, 0
-    beta = min(max(math.log2(v[-2] / v[-1]), 1.0), 2.0) if len(v) >= 3 else 1.0
-    n_levels = 3
-    while bound * (h0 / 2 ** (n_levels - 1)) ** order > eps / math.sqrt(2):
-        n_levels += 1
-        if n_levels > 12:
-            return math.inf, (), 0, 0
-    while len(v) < n_levels:
-        v.append(v[-1] * 2**-beta)
-    v = v[:n_levels]
-    factor = 2.0 if anti else 1.0
-    costs = [factor * (steps0 * 2**ell + (steps0 * 2 ** (ell - 1) if ell else 0)) for ell in range(n_levels)]
-    total = sum(math.sqrt(x * c) for x, c in zip(v, costs))
-    optimal = [2 / eps**2 * math.sqrt(x / c) * total for x, c in zip(v, costs)]
-    piece = min(2**16, base * 4 ** max(0, math.floor(math.log(max(optimal[0], 1) / (16 * base), 4)) + 1))
-    piece = base if optimal[0] < 16 * base else piece
-    counts = []
-    for ell, o in enumerate(optimal):
-        size = max(BLOCK, (piece >> ell) // BLOCK * BLOCK)
-        counts.append(size * max(1, math.ceil(o / size)))
-    return float(sum(n * c for n, c in zip(counts, costs))), tuple(counts), piece, n_levels
-
-
 # --- the entry point --------------------------------------------------------------------------------------------
 
 
@@ -475,7 +423,7 @@ def to_accuracy(
     - ``wrt``: names of scalar parameters (``('eps', 'nu')``): the statistic's derivatives in them with their
       standard errors (``derivative``, ``derivative_se``), from the chosen estimator's per-path tangents.
     """
-    t_start = time.perf_counter()
+    t_start, compiled_start = time.perf_counter(), compile_clock()
     if not isinstance(system, StochasticSystem):
         raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
     if (rmse is None) == (relative_rmse is None):
@@ -589,6 +537,8 @@ def to_accuracy(
             _quasi_monte_carlo_alternative(system, y0, pilot_key, run_key, rmse, h0, steps0, euler, common)
         )
     pilot_work += sum(a.pilot_work for a in alternatives)
+    per_sample = n_save * len(names) * (1 + len(wrt)) * jnp.dtype(jnp.result_type(float)).itemsize
+    alternatives = [dataclasses.replace(a, memory=peak_bytes(_kept_samples(a) * per_sample)) for a in alternatives]
     if timed:
         rates = {p.solver: p.seconds_per_path_step for p in pilots}
         alternatives = [dataclasses.replace(a, seconds=a.cost * rates.get(a.solver, math.nan)) for a in alternatives]
@@ -596,6 +546,14 @@ def to_accuracy(
     ranked = sorted((a for a in alternatives if a.run is not None and math.isfinite(key_of(a))), key=key_of)
     if not ranked:
         raise ValueError(f"rmse={rmse:.3g}: no alternative can reach it from dt={h0}; see the pilot:\n{pilots}")
+    fitting = [a for a in ranked if a.memory <= memory_limit()]
+    if not fitting:
+        check_memory(
+            f"rmse={rmse:.3g}: the cheapest way, {ranked[0].name},",
+            ranked[0].memory,
+            "raise rmse (every alternative keeps its per-path values).",
+        )
+    ranked = fitting
     chosen = ranked[0]
     if chosen.cost > max_path_steps:
         raise ValueError(
@@ -604,10 +562,12 @@ def to_accuracy(
         )
     unit = "s" if timed else "path-steps"
     reason = f"cheapest predicted work ({key_of(chosen):.3g} {unit})"
-    if len(ranked) > 1:
+    if len(ranked) > 1 and key_of(chosen) > 0:
         reason += f", {key_of(ranked[1]) / key_of(chosen):.2g}× below the next, {ranked[1].name}"
     assert chosen.run is not None
+    run_start = time.perf_counter()
     value, se, bias, work, result = chosen.run()
+    run_seconds = time.perf_counter() - run_start
     derivative, derivative_se = _derivative_of(result, (kind, i, j), wrt)
     return AccuracyResult(
         statistic=statistic,
@@ -618,6 +578,11 @@ def to_accuracy(
         work=float(work + pilot_work),
         pilot_work=float(pilot_work),
         seconds=time.perf_counter() - t_start,
+        compile_seconds=compile_clock() - compiled_start,
+        predicted_work=chosen.cost / chosen.kappa,
+        predicted_seconds=chosen.seconds,
+        run_work=float(work),
+        run_seconds=run_seconds,
         choice=chosen.name,
         reason=reason,
         alternatives=tuple(alternatives),
@@ -629,6 +594,16 @@ def to_accuracy(
     )
 
 
+def _kept_samples(a: AccuracyAlternative) -> float:
+    """Per-path value sets an alternative's run keeps: one per solve of each sample (quasi-Monte Carlo keeps
+    moments only)."""
+    pairs = 2 if a.antithetic else 1
+    if a.method == "multilevel":
+        return pairs * sum(n * (2 if ell else 1) for ell, n in enumerate(a.n_paths))
+    solves = {"plain": 1, "extrapolation": 2, "control variate": 2}.get(a.method, 0)
+    return pairs * solves * sum(a.n_paths)
+
+
 def _alternatives(system, y0, key, cand: _Candidate, p: PilotSummary, eps, h0, steps0, use_anti, antithetic, common):
     """Plain Monte Carlo, extrapolation and multilevel for one solver, each plain and antithetic as allowed."""
     out = []
@@ -637,7 +612,7 @@ def _alternatives(system, y0, key, cand: _Candidate, p: PilotSummary, eps, h0, s
         tag = f"{cand.label}{', antithetic' if anti else ''}"
         factor = 2.0 if anti else 1.0
         v = p.antithetic_variance if anti else p.variance
-        c, k, n, bias = _best_single(v, p.bias_bound, p.order, eps, steps0, factor)
+        c, k, n, bias = best_single(v, p.bias_bound, p.order, eps, h0, steps0, factor)
         h = h0 / 2**k if k >= 0 else math.nan
         out.append(
             AccuracyAlternative(
@@ -654,7 +629,7 @@ def _alternatives(system, y0, key, cand: _Candidate, p: PilotSummary, eps, h0, s
             )
         )
         ve = p.antithetic_extrapolation_variance if anti else p.extrapolation_variance
-        c, k, n, _ = _best_single(ve, p.extrapolation_bound, p.order + 1, eps, steps0, 3 * factor)
+        c, k, n, _ = best_single(ve, p.extrapolation_bound, p.order + 1, eps, h0, steps0, 3 * factor)
         h = h0 / 2**k if k >= 0 else math.nan
         bias = p.extrapolation_constant * h ** (p.order + 1)
         note = "" if k >= 0 else ("needs pilot_levels ≥ 3" if not math.isfinite(ve + p.extrapolation_bound) else "")
@@ -673,7 +648,7 @@ def _alternatives(system, y0, key, cand: _Candidate, p: PilotSummary, eps, h0, s
             )
         )
         lv = p.antithetic_level_variances if anti else p.level_variances
-        c, counts, piece, n_levels = _multilevel_plan(
+        c, counts, piece, n_levels = multilevel_plan(
             lv, p.bias_bound, p.order, eps, steps0, h0, anti, common["pilot_paths"]
         )
         out.append(
@@ -701,7 +676,7 @@ def _statistic_of(run_result, statistic_index):
 
 def _runner_plain(system, y0, key, cand, h, n, anti, p: PilotSummary, common):
     def run():
-        n_total, piece = _whole_pieces(n)
+        n_total, piece = whole_pieces(n)
         res = multilevel_monte_carlo(
             system,
             y0,
@@ -789,7 +764,7 @@ def _control_variate_alternative(system, y0, pilot_key, run_key, eps, h0, steps0
     variance = sb**2 * n_pilot
     bound = (abs(vb - va) + 2 * (sa + sb)) / h_b
     per_path_step = float(runs[1].cost) / n_pilot / (steps0 * 2 ** (levels - 1))
-    c, k, n, _ = _best_single(variance, bound, 1, eps, steps0, per_path_step)
+    c, k, n, _ = best_single(variance, bound, 1, eps, h0, steps0, per_path_step)
     if k < 0:
         return AccuracyAlternative(
             name, "control variate", "euler", False, math.inf, note="no step reaches the target", pilot_work=work
@@ -872,7 +847,7 @@ def _quasi_monte_carlo_alternative(
     euler_rate = (time.perf_counter() - start) / path_steps
     reference_work = float((1 + r_pilot) * n_q * steps_b)
     kappa = rate / euler_rate if euler_rate > 0 else math.nan
-    work = 2 * path_steps * kappa + reference_work
+    work = 2 * path_steps + reference_work
     value, se = (float(x) for x in _statistic_of(res, (kind, i, j)))
     if not all(math.isfinite(x) for x in (value, se, kappa)):
         return skip("non-finite pilot", work)
@@ -882,11 +857,12 @@ def _quasi_monte_carlo_alternative(
     def per_replicate(n: float) -> int:  # a power of two ≥ 64
         return max(BLOCK, 1 << max(0, math.ceil(math.log2(max(n, 1.0) / QMC_REPLICATES))))
 
-    cost, k, _, _ = _best_single(
+    cost, k, n_total, _ = best_single(
         variance,
         euler.bias_bound,
         1,
         eps,
+        h0,
         steps0,
         kappa,
         min(max_k, MAX_REFINEMENTS),
@@ -895,7 +871,11 @@ def _quasi_monte_carlo_alternative(
     if k < 0:
         return skip("no step reaches the target within the Sobol' dimensions", work)
     h = h0 / 2**k
-    per = per_replicate(variance / (eps**2 - (euler.bias_bound * h) ** 2))
+    per = n_total // QMC_REPLICATES
+    if per > MAX_PATH_INDEX // 2:
+        return skip(
+            f"needs {per:.3g} paths per scrambling, more than the {MAX_PATH_INDEX // 2 + 1} a key indexes", work
+        )
     bias = euler.bias_constant * h  # E S(h) − S ≈ C h (p = 1), Euler's
 
     def run():
@@ -911,7 +891,7 @@ def _quasi_monte_carlo_alternative(
             **opts,
         )
         value, se = _statistic_of(res, (kind, i, j))
-        return value, se, bias, cost, res
+        return value, se, bias, float(res.n_paths) * steps0 * 2**k, res
 
     return AccuracyAlternative(
         name,
@@ -925,4 +905,5 @@ def _quasi_monte_carlo_alternative(
         note=f"{QMC_REPLICATES} × {per} paths, κ = {kappa:.3g}",
         run=run,
         pilot_work=work,
+        kappa=kappa,
     )

@@ -178,6 +178,20 @@ def with_tangents(fn: Callable[[StochasticSystem], Any], system: StochasticSyste
     return value, jax.tree.map(lambda _, per_parameter: jnp.stack(per_parameter), value, d)
 
 
+KEY_PATHS = 2**30
+"""Paths drawn from one key: path ``i`` of a run is path ``i mod 2^30`` of ``key`` for ``i < 2^30``, else of
+``fold_in(key, i // 2^30)``, so that runs of any size stay within the paths a key indexes."""
+
+
+def key_segments(key, first_path: int, n_paths: int):
+    """``(key, first, n)`` runs covering paths ``first_path … first_path + n_paths − 1`` (:data:`KEY_PATHS`)."""
+    while n_paths > 0:
+        segment, first = divmod(first_path, KEY_PATHS)
+        size = min(n_paths, KEY_PATHS - first)
+        yield (key if segment == 0 else jax.random.fold_in(key, segment)), first, size
+        first_path, n_paths = first_path + size, n_paths - size
+
+
 def coupled_paths(
     system: StochasticSystem,
     y0,
@@ -195,30 +209,34 @@ def coupled_paths(
     first_path: int = 0,
     wrt: tuple[str, ...] = (),
 ) -> tuple[list[Array], list[Array]]:
-    """Per-path saved values ``(n_paths, n, k)`` of paths ``first_path …`` solved at each of ``dts`` on one Brownian
-    path of step ``brownian_dt``; with ``antithetic``, then the same for the reflected paths.  With parameter names
-    ``wrt``, also their tangents ``(len(wrt), n_paths, n, k)`` (forward mode); else an empty list."""
+    """Per-path saved values ``(n_paths, n, k)`` of paths ``first_path …`` (:data:`KEY_PATHS` per key) solved at
+    each of ``dts`` on one Brownian path of step ``brownian_dt``; with ``antithetic``, then the same for the
+    reflected paths.  With parameter names ``wrt``, also their tangents ``(len(wrt), n_paths, n, k)`` (forward
+    mode); else an empty list."""
     systems = (system, reflected(system)) if antithetic else (system,)
     out, tangents = [], []
     for s in systems:
         for dt in dts:
 
             def per_path(solved: StochasticSystem, dt=dt):
-                ens = simulate(
-                    solved,
-                    y0,
-                    key,
-                    n_paths=n_paths,
-                    t0=t0,
-                    t1=t1,
-                    steps=FixedSteps(dt, brownian_dt=brownian_dt),
-                    solver=solver,
-                    save=save,
-                    batching=batching,
-                    first_path=first_path,
-                )
-                assert ens.paths is not None
-                return ens.paths
+                parts = []
+                for k, first, size in key_segments(key, first_path, n_paths):
+                    ens = simulate(
+                        solved,
+                        y0,
+                        k,
+                        n_paths=size,
+                        t0=t0,
+                        t1=t1,
+                        steps=FixedSteps(dt, brownian_dt=brownian_dt),
+                        solver=solver,
+                        save=save,
+                        batching=batching,
+                        first_path=first,
+                    )
+                    assert ens.paths is not None
+                    parts.append(ens.paths)
+                return parts[0] if len(parts) == 1 else jnp.concatenate(parts)
 
             z, t = with_tangents(per_path, s, wrt)
             out.append(z)

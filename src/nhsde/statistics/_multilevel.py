@@ -48,6 +48,7 @@ from .._options import AbstractSteps, Batching, FixedSteps
 from .._solvers import solver_needs
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
+from ._cost import MAX_LEVELS, allocate, check_memory, level_cost, level_piece, peak_bytes
 from ._extrapolation import (
     Estimate,
     coupled_paths,
@@ -124,11 +125,17 @@ class _Levels:
         self.tangents: list[list[list[Array]]] = []  # the same, their tangents in wrt (empty without)
 
     def piece(self, level: int) -> int:
-        return max(BLOCK, (self.piece_paths >> level) // BLOCK * BLOCK)
+        return level_piece(self.piece_paths, level)
 
     def cost(self, level: int) -> float:
-        fine = self.steps0 * 2**level
-        return (2.0 if self.antithetic else 1.0) * (fine + (fine // 2 if level else 0))
+        return level_cost(self.steps0, level, self.antithetic)
+
+    def check_memory(self, counts: Sequence[int], name: str, fix: str) -> None:
+        """Refuse (naming ``name``) counts per level whose per-path values would not fit in memory."""
+        save, wrt = self.opts["save"], self.opts["wrt"]
+        per_sample = save.n * len(save.names) * (1 + len(wrt)) * jnp.dtype(jnp.result_type(float)).itemsize
+        sets = sum(n * (2 if level else 1) * (2 if self.antithetic else 1) for level, n in enumerate(counts))
+        check_memory(name, peak_bytes(sets * per_sample), fix)
 
     def run(self, level: int, first_path: int, n_paths: int) -> tuple[list[Array], list[Array]]:
         h = self.h0 / 2**level
@@ -169,12 +176,6 @@ class _Levels:
         return paired_sensitivities(sets, tangents, self.weights(level))
 
 
-def _allocate(variances: Sequence[float], costs: Sequence[float], rmse: float) -> list[float]:
-    """``N_ℓ = 2 ε⁻² √(V_ℓ/C_ℓ) Σ_k √(V_k C_k)`` (module)."""
-    total = sum(math.sqrt(v * c) for v, c in zip(variances, costs))
-    return [2.0 / rmse**2 * math.sqrt(v / c) * total for v, c in zip(variances, costs)]
-
-
 def multilevel_monte_carlo(
     system: StochasticSystem,
     y0,
@@ -192,7 +193,7 @@ def multilevel_monte_carlo(
     weak_order: float | None = None,
     antithetic: bool = False,
     piece_paths: int = 4096,
-    max_levels: int = 12,
+    max_levels: int = MAX_LEVELS,
     batching: Batching | None = None,
     wrt: Sequence[str] | None = None,
 ) -> MultilevelEstimate:
@@ -288,6 +289,7 @@ def multilevel_monte_carlo(
         counts = [check_number("n_paths", n, integer=True) for n in n_paths]
         if not counts or min(counts) < 1:
             raise ValueError(f"n_paths={n_paths!r}; expected one count ≥ 1 per level, (N_0, …, N_L).")
+        levels.check_memory(counts, f"n_paths={tuple(counts)}", "take fewer paths, or average runs of several keys.")
         for level, n in enumerate(counts):
             levels.grow(level, n)
         moments = [levels.moments(level) for level in range(len(counts))]
@@ -355,12 +357,17 @@ def _adapt(levels: _Levels, eps: float, alpha: float, max_levels: int, kind, i, 
         counts = [levels.count(level) for level in range(n_levels)]
         variances = [max(float(_pick(kind, i, j, m[2], m[3])) * n, 1e-300) for m, n in zip(moments, counts)]
         costs = [levels.cost(level) for level in range(n_levels)]
-        optimal = _allocate(variances, costs, eps)
+        optimal = allocate(variances, costs, eps)
+        if not all(o < 2.0**62 for o in optimal):
+            raise ValueError(
+                f"rmse={eps:.3g}: the level variances {variances} need more than 2^62 samples; raise rmse."
+            )
         wanted = [
             max(n, levels.piece(level) * math.ceil(o / levels.piece(level)))
             for level, (n, o) in enumerate(zip(counts, optimal))
         ]
         if wanted != counts:
+            levels.check_memory(wanted, f"rmse={eps:.3g}: the samples per level {tuple(wanted)}", "raise rmse.")
             continue
         means = jnp.stack([_pick(kind, i, j, m[0], m[1]) for m in moments])
         if float(_bias(means, alpha)) <= eps / math.sqrt(2):
