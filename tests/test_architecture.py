@@ -3,7 +3,7 @@
 Layers, lowest first (a module may import from its own layer or any lower one):
 shared checks, the compilation cache → parameters, Brownian driver (and the weak scheme's increments it draws) →
 system → noise, mechanics, bodies (specs) → scenes → ensemble, options, solvers → simulate →
-statistics, analysis, work precision, plots → fit → runs (and the CLI) → the package's top level.
+statistics, analysis, work precision, sweeps, plots → fit → runs (and the CLI) → the package's top level.
 """
 
 import ast
@@ -19,7 +19,7 @@ LAYERS = [
     {"scenes"},
     {"_ensemble", "_options", "_solvers"},
     {"_simulate"},
-    {"statistics", "analysis", "_work_precision", "plot"},
+    {"statistics", "analysis", "_work_precision", "_sweep", "plot"},
     {"fit"},
     {"runs"},
     {"__init__"},

@@ -39,6 +39,7 @@ from ._params import (
 )
 from ._simulate import simulate as simulate
 from ._solvers import SOLVERS as SOLVERS, ExponentialEuler as ExponentialEuler
+from ._sweep import sweep as sweep
 from ._system import StateLayout as StateLayout, StochasticSystem as StochasticSystem
 from ._weak import (
     GaussianWeakIncrement as GaussianWeakIncrement,

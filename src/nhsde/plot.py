@@ -14,7 +14,16 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["band", "confidence_ellipse", "density", "drift_curves", "figure_dir", "poincare_section", "save"]
+__all__ = [
+    "band",
+    "confidence_ellipse",
+    "density",
+    "drift_curves",
+    "figure_dir",
+    "poincare_section",
+    "save",
+    "sweep",
+]
 
 
 def figure_dir() -> Path:
@@ -209,4 +218,44 @@ def confidence_ellipse(ax, mean, cov, *, n_sigma: float = 2.0, **kwargs):
     center = (float(mean[0]), float(mean[1]))
     ax.add_patch(Ellipse(center, 2 * n_sigma * np.sqrt(w[1]), 2 * n_sigma * np.sqrt(w[0]), angle=angle, **kwargs))
     ax.autoscale_view()
+    return ax
+
+
+def sweep(ds, variable: str = "value", *, ax=None, n_se: float = 2.0, cmap: str = "viridis"):
+    """A statistic of :func:`nhsde.sweep` over its grid: markers on a band of ``± n_se`` standard errors
+    over one parameter, a heat map over two.
+
+    Arguments:
+        ds: the dataset :func:`nhsde.sweep` returns (with ``statistic=``, for ``value``).
+        variable: what to draw: ``value`` or a derivative ``d_value_d_eps``, …; its ``_se`` gives the band.
+        ax: matplotlib axes (``None``: a new figure).
+        n_se: the half-width of the band in standard errors (one parameter).
+        cmap: the colour map of the heat map (two parameters).
+
+    Returns:
+        the axes.
+    """
+    if variable not in ds:
+        have = ", ".join(v for v in map(str, ds.data_vars) if not v.endswith("_se"))
+        raise ValueError(f"sweep: ds has no {variable!r} (sweep(..., statistic=...) adds value); it has {have}.")
+    dims = [str(d) for d in ds[variable].dims]
+    if set(dims) & {"time", "name", "name2"}:
+        raise ValueError(f"sweep: {variable!r} varies over {dims}; draw a statistic over the grid alone (value, …).")
+    value = ds[variable]
+    label = value.attrs.get("long_name", variable)
+    ax = _axes(ax)
+    if len(dims) == 1:
+        band(ax, ds[dims[0]].values, value.values, ds[variable + "_se"].values, n_se=n_se, label=label)
+        ax.set_xlabel(dims[0])
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    elif len(dims) == 2:
+        x, y = ds[dims[1]].values, ds[dims[0]].values
+        mesh = ax.pcolormesh(x, y, value.values, shading="nearest", cmap=cmap)
+        ax.figure.colorbar(mesh, ax=ax, label=label)
+        ax.set_xlabel(dims[1])
+        ax.set_ylabel(dims[0])
+    else:
+        raise ValueError(f"sweep: {variable!r} varies over {dims}; select one or two parameters (ds.isel(...)).")
     return ax

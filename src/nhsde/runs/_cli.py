@@ -25,6 +25,7 @@ import numpy as np
 from .._compilation_cache import enable_compilation_cache
 from ._distributed import add_flags, processes
 from ._fit import fit_data_flags
+from ._sweep import sweep_command, sweep_flags
 
 __all__ = ["build_parser", "main"]
 
@@ -586,6 +587,7 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--config", help="a TOML fit file")
     fit.add_argument("--out", help="netCDF file for the estimates (default the config's name with .nc)")
     fit_data_flags(fit)  # --data FILE --scene SCENE --fit NAMES, the model's options, --json
+    sweep_flags(sub.add_parser("sweep", help="simulate a scene over a grid of parameters; a statistic at each point"))
     for p in (sim, fit):
         add_flags(p)  # --coordinator, --num-processes, --process-id: several processes, process 0 writes
     return parser
@@ -616,7 +618,8 @@ def main(argv=None) -> int:
     from .._ensemble import SimulationError
 
     args = build_parser().parse_args(argv)
-    command = {"scenes": _cmd_scenes, "simulate": _cmd_simulate, "fit": _cmd_fit}[args.command]
+    commands = {"scenes": _cmd_scenes, "simulate": _cmd_simulate, "fit": _cmd_fit, "sweep": sweep_command}
+    command = commands[args.command]
     try:
         enable_compilation_cache()  # $NHSDE_COMPILATION_CACHE: another folder, or off
         with (
