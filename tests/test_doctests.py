@@ -1,4 +1,4 @@
-"""The ``>>>`` examples in the docstrings run and print what they show.
+"""The ``>>>`` examples in the docstrings and in the documentation pages run and print what they show.
 
 Every module of the package is searched, the private ones included: the public names are re-exported
 from private modules (``nhsde._simulate.simulate`` is ``nhsde.simulate``), and their docstrings live
@@ -9,6 +9,7 @@ import doctest
 import importlib
 import io
 import pkgutil
+from pathlib import Path
 
 import jax
 
@@ -49,6 +50,28 @@ def test_examples_are_collected():
     assert len(documented) >= MIN_DOCSTRINGS, f"only {len(documented)} docstrings with examples found: {documented}"
     for must in ("nhsde._simulate.simulate", "nhsde.scenes._ball.BallOnVibratingPlane"):
         assert must in documented, f"{must} lost its example"
+
+
+DOCS = Path(__file__).resolve().parents[1] / "docs"
+PAGES = sorted(str(p.relative_to(DOCS)) for p in DOCS.rglob("*.md") if ">>> " in p.read_text())
+"""The documentation pages with ``>>>`` examples (a blank line ends each example's output before its fence)."""
+
+
+def test_pages_are_collected():
+    assert "guide/your-own-scene.md" in PAGES
+
+
+@pytest.mark.parametrize("page", PAGES)
+def test_page_examples(page):
+    text = (DOCS / page).read_text()
+    test = doctest.DocTestParser().get_doctest(text, {"__name__": "__doc_page__"}, page, str(DOCS / page), 0)
+    runner = doctest.DocTestRunner(optionflags=FLAGS)
+    report = io.StringIO()
+    runner.run(test, out=report.write)
+    result = runner.summarize(verbose=False)
+    assert result.attempted >= 1 and result.failed == 0, (
+        f"{result.failed} of {result.attempted} examples in {page} failed:\n{report.getvalue()}"
+    )
 
 
 @pytest.mark.parametrize("name", sorted(name for name, found in DOCUMENTED.items() if found))

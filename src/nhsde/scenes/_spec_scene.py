@@ -30,12 +30,15 @@ class AbstractSpecScene(AbstractScene):
       (``kinetic_energy`` or ``mass_matrix``, ``potential``, ``constraints``,
       ``holonomic``, ``servo``, ``dissipation``, ``noise_force``, …), a class variable or a property;
     - ``dependent`` (class variable): the Voronets choice of dependent velocities
-      of the reduced routes (``None``: chosen by pivoting at the initial configuration);
+      of the reduced routes, and in every route the coordinates with the role
+      ``dependent_coordinate`` (the drift) (``None``: chosen by pivoting at the initial configuration);
     - ``stabilization`` (class variable, default 10/s): the Baumgarte rate of the
       routes with all velocities;
-    - a static field ``route`` and ``configuration() -> (q, q̇)``.
+    - a static field ``route``, a keyword-only ``__init__(self, *, route=..., **params)``
+      setting ``params`` and the options, and ``configuration() -> (q, q̇)``.
 
-    ``spec()``, ``form()``, ``build()`` and ``initial_state()`` follow from these.
+    ``spec()``, ``form()``, ``build()`` and ``initial_state()`` follow from these: do not implement them.
+    The guide's page "Your own scene" writes one, a knife edge on an inclined plane.
     """
 
     route: AbstractVar[str]
