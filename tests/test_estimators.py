@@ -16,7 +16,6 @@ import nhsde
 from nhsde.noise import CompoundPoisson, NormalJumps
 from nhsde.scenes import BallOnVibratingPlane, ChaplyginBall, ball_covariances
 from nhsde.statistics import (
-    _extrapolation,
     antithetic,
     control_variate,
     extrapolate,
@@ -239,17 +238,3 @@ def test_bad_spans_and_level_counts_are_refused_before_any_solve():
     for kwargs in (dict(n_paths=(64,), max_levels=0), dict(rmse=0.1, max_levels=1), dict(rmse=0.1, max_levels=-2)):
         with pytest.raises(ValueError, match=f"^max_levels={kwargs['max_levels']}; must be ≥ 1"):
             multilevel_monte_carlo(system, Y0, key, **base, **kwargs)
-
-
-def test_runs_beyond_the_paths_of_one_key_draw_from_further_keys(monkeypatch):
-    """Path ``i ≥ KEY_PATHS`` is path ``i mod KEY_PATHS`` of ``fold_in(key, i // KEY_PATHS)`` (made small here): a run
-    across the boundary is the concatenation of the two keys' runs, and their paths differ."""
-    monkeypatch.setattr(_extrapolation, "KEY_PATHS", 128)
-    system, key = BALL.build(), jax.random.key(7)
-    args = dict(t0=0.0, t1=1.0, dts=(0.25,), brownian_dt=0.25, solver="euler", antithetic=False, batching=None)
-    args["save"] = nhsde.Save(names=("x",), n=2, paths=True)
-    (both,), _ = _extrapolation.coupled_paths(system, Y0, key, n_paths=128, first_path=64, **args)
-    (first,), _ = _extrapolation.coupled_paths(system, Y0, key, n_paths=64, first_path=64, **args)
-    (second,), _ = _extrapolation.coupled_paths(system, Y0, jax.random.fold_in(key, 1), n_paths=64, **args)
-    np.testing.assert_array_equal(np.asarray(both), np.concatenate([first, second]))
-    assert not np.any(np.asarray(first[:, -1]) == np.asarray(second[:, -1]))

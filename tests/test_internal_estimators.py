@@ -1,0 +1,49 @@
+"""Internals of the estimators: the bias and work model that plans them (``statistics/_cost.py``), and the keys of
+runs beyond the paths one key indexes (``statistics/_extrapolation.py``)."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import nhsde
+from nhsde.scenes import BallOnVibratingPlane
+from nhsde.statistics import _extrapolation
+from nhsde.statistics._cost import best_single, multilevel_plan
+
+BALL = BallOnVibratingPlane(eps=1.0, nu=1.0)
+Y0 = jnp.zeros(4)
+
+
+@pytest.mark.parametrize("h0", [0.25, 2.5])
+def test_the_bias_model_carries_the_coarsest_step(h0):
+    """The bias of a plan at ``h = h₀ 2^{−k}`` is ``bound·h^p`` in time units (``h₀^p`` included), the samples
+    keep ``V/N + bias² ≤ ε²``, and one step coarser would miss the target or cost more; the multilevel plan stops
+    at the first ``L`` with ``bound·h_L^p ≤ ε/√2``."""
+    variance, bound, eps, steps0 = 2.0, 0.3, 0.05, 4
+    for order in (1, 2):
+        cost, k, n, bias = best_single(variance, bound, order, eps, h0, steps0, 1.0)
+        h = h0 / 2**k
+        assert bias == bound * h**order and variance / n + bias**2 <= eps**2
+        coarser = best_single(variance, bound, order, eps, 2 * h, steps0 // 2 or 1, 1.0)
+        assert coarser[1] != 0 or coarser[0] >= cost
+        _, counts, _, levels = multilevel_plan([1.0, 0.1, 0.02], bound, order, eps, steps0, h0, False, 1024)
+        finest = h0 / 2 ** (levels - 1)
+        assert len(counts) == levels >= 3 and bound * finest**order <= eps / math.sqrt(2)
+        assert levels == 3 or bound * (2 * finest) ** order > eps / math.sqrt(2)
+
+
+def test_runs_beyond_the_paths_of_one_key_draw_from_further_keys(monkeypatch):
+    """Path ``i ≥ KEY_PATHS`` is path ``i mod KEY_PATHS`` of ``fold_in(key, i // KEY_PATHS)`` (made small here): a run
+    across the boundary is the concatenation of the two keys' runs, and their paths differ."""
+    monkeypatch.setattr(_extrapolation, "KEY_PATHS", 128)
+    system, key = BALL.build(), jax.random.key(7)
+    args = dict(t0=0.0, t1=1.0, dts=(0.25,), brownian_dt=0.25, solver="euler", antithetic=False, batching=None)
+    args["save"] = nhsde.Save(names=("x",), n=2, paths=True)
+    (both,), _ = _extrapolation.coupled_paths(system, Y0, key, n_paths=128, first_path=64, **args)
+    (first,), _ = _extrapolation.coupled_paths(system, Y0, key, n_paths=64, first_path=64, **args)
+    (second,), _ = _extrapolation.coupled_paths(system, Y0, jax.random.fold_in(key, 1), n_paths=64, **args)
+    np.testing.assert_array_equal(np.asarray(both), np.concatenate([first, second]))
+    assert not np.any(np.asarray(first[:, -1]) == np.asarray(second[:, -1]))
