@@ -3,6 +3,11 @@
 Each test is a row of the table of cases that used to go wrong silently under ``jit``, ``grad`` and ``vmap``.
 """
 
+import os
+import signal
+import subprocess
+import sys
+import time
 import warnings
 
 import equinox as eqx
@@ -124,3 +129,34 @@ def test_covariance_standard_errors_are_never_zero_for_a_non_degenerate_sample()
     cov_se = MomentSums.zeros(jnp.zeros((1, 2))).add_paths(jnp.asarray(z), jnp.ones(n, bool)).statistics()[3]
     np.testing.assert_allclose(float(cov_se[0, 0, 1]) ** 2, (1 + rho**2) / (n - 1), rtol=0.05)
     np.testing.assert_allclose(float(cov_se[0, 0, 0]) ** 2, 2 / (n - 1), rtol=0.05)
+
+
+def test_ctrl_c_stops_a_long_cli_run_within_seconds(tmp_path):
+    """A `nhsde simulate` estimated at hours used to ignore SIGINT until the solve ended."""
+    env = dict(os.environ, NHSDE_COMPILATION_CACHE="off")
+    command = [sys.executable, "-m", "nhsde.runs", "simulate", "ball-on-vibrating-plane"]
+    command += ["--paths", "4096", "--t1", "100000", "--dt", "0.01"]
+    child = subprocess.Popen(command, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
+    time.sleep(20)  # imported, compiled and solving (the solve alone takes hours)
+    assert child.poll() is None, child.stderr.read() if child.stderr else ""
+    child.send_signal(signal.SIGINT)
+    _, err = child.communicate(timeout=10)
+    assert child.returncode == 130, err
+    assert err.strip().splitlines()[-1].startswith("nhsde simulate: interrupted"), err
+
+
+def test_ctrl_c_stops_a_long_solve_from_python():
+    """From Python the KeyboardInterrupt used to arrive only when the solve ended."""
+    script = (
+        "import os, signal, threading, time, jax, nhsde\n"
+        "scene = nhsde.scenes.BallOnVibratingPlane()\n"
+        "threading.Timer(15, lambda: os.kill(os.getpid(), signal.SIGINT)).start()\n"
+        "t = time.monotonic()\n"
+        "try:\n"
+        "    nhsde.simulate(scene.build(), scene.initial_state(), jax.random.key(0), n_paths=4096, t1=1e5, dt=0.01)\n"
+        "except KeyboardInterrupt:\n"
+        "    print('interrupted after', time.monotonic() - t)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert "interrupted after" in out.stdout, out.stderr
+    assert float(out.stdout.split()[-1]) < 15 + 10, out.stdout

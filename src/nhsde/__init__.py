@@ -25,6 +25,7 @@ from ._ensemble import (
     MomentSums as MomentSums,
     Save as Save,
     SimulationError as SimulationError,
+    SimulationResult as SimulationResult,
 )
 from ._options import (
     AdaptiveSteps as AdaptiveSteps,

@@ -75,8 +75,9 @@ def check_result(outputs, result: SimulationResult, caller: str, details: str = 
     check, so no output of a failed run can be used, whichever is read.
     """
     if is_concrete(result):
-        if result != SimulationResult.successful:
-            raise SimulationError(f"{caller}: {details}{SimulationResult[result]}")
+        message = SimulationResult[result]  # read on the host: no program of its own
+        if message:
+            raise SimulationError(f"{caller}: {details}{message}")
         return outputs
     return result.error_if(outputs, result != SimulationResult.successful)
 
@@ -214,25 +215,28 @@ class MomentSums(eqx.Module):
         return self.add_blocks(self.block_sums(obs, valid))
 
     def statistics(self):
-        """``(mean, cov, mean_se, cov_se)``: sample mean, unbiased covariance and their Monte-Carlo errors.
-
-        The variance of the unbiased covariance ``s_ij`` of ``n`` paths is exactly
-        ``(μ₂₂ − σ_ij²)/n + (σ_ii σ_jj + σ_ij²)/(n(n − 1))``, ``μ₂₂ = E[(z_i − a_i)²(z_j − a_j)²]``;
-        it is estimated with the sample's own central moments ``m`` (divided by ``n``), whose
-        first term ``m₂₂ − m_ij²`` is ≥ 0 (Cauchy–Schwarz) and whose second is > 0 for any
-        non-degenerate sample: no standard error is zero unless the sample is.
-        """
+        """``(mean, cov, mean_se, cov_se)``: sample mean, unbiased covariance and their Monte-Carlo errors."""
         nf = self.count.astype(self.s1.dtype)
         mean = self.shift + self.s1 / nf
-        m2 = (self.s2 - jnp.einsum("ni,nj->nij", self.s1, self.s1) / nf) / nf  # central, divided by n
-        cov = m2 * nf / jnp.maximum(nf - 1, 1)
+        cov = (self.s2 - jnp.einsum("ni,nj->nij", self.s1, self.s1) / nf) / jnp.maximum(nf - 1, 1)
         mean_se = _safe_sqrt(jnp.diagonal(cov, axis1=1, axis2=2) / nf)
         fourth = _central_product_moment(self.s1 / nf, self.s2 / nf, self.s3 / nf, self.s4 / nf)
-        var = jnp.diagonal(m2, axis1=1, axis2=2)
-        cov_var = jnp.maximum(fourth - m2**2, 0.0) / nf + (var[:, :, None] * var[:, None, :] + m2**2) / (
-            nf * jnp.maximum(nf - 1, 1)
-        )
-        return mean, cov, mean_se, _safe_sqrt(cov_var)
+        return mean, cov, mean_se, _safe_sqrt(covariance_variance(cov, fourth, nf))
+
+
+def covariance_variance(cov, fourth, n):
+    """The squared standard error of the unbiased sample covariance ``cov`` of ``n`` paths.
+
+    Exactly ``Var s_ij = (μ₂₂ − σ_ij²)/n + (σ_ii σ_jj + σ_ij²)/(n(n − 1))``, with
+    ``μ₂₂ = E[(z_i − a_i)²(z_j − a_j)²]`` (``fourth``, the sample's own, divided by ``n``);
+    estimated with the sample's central moments ``m = cov·(n − 1)/n``: the first term
+    ``m₂₂ − m_ij² ≥ 0`` (Cauchy–Schwarz) and the second ``> 0`` for a non-degenerate
+    sample, so no standard error is zero unless the sample is.
+    """
+    m = cov * (n - 1) / n
+    var = jnp.diagonal(m, axis1=-2, axis2=-1)
+    pair = var[..., :, None] * var[..., None, :] + m**2
+    return jnp.maximum(fourth - m**2, 0.0) / n + pair / (n * jnp.maximum(n - 1, 1))
 
 
 class AbstractMoments(eqx.Module):

@@ -22,6 +22,11 @@ def is_concrete(*trees) -> bool:
     return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(trees))
 
 
+def under_trace() -> bool:
+    """True while a JAX transformation traces the caller: a compiled helper called now would return tracers."""
+    return isinstance(jnp.asarray(0.0), jax.core.Tracer)
+
+
 def cast_floats(tree, dtype):
     """``tree`` with its floating-point array leaves cast to ``dtype`` (other leaves unchanged)."""
     return jax.tree_util.tree_map(

@@ -17,6 +17,7 @@ about 1 GiB, so its memory is bounded by the steps per save interval.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import math
@@ -34,7 +35,8 @@ import numpy as np
 
 from ._brownian import BLOCK, StepIncrement, block_keys
 from ._ensemble import MIN_PATHS, Ensemble, MomentSums, Save, SimulationResult, check_result, failure_result
-from ._misc import cast_floats, check_key, check_number, check_steps, is_concrete
+from ._interrupt import POLL_STEPS, poll, watching
+from ._misc import cast_floats, check_key, check_number, check_steps, is_concrete, under_trace
 from ._options import AbstractSteps, AdaptiveSteps, Batching, FixedSteps
 from ._params import check_ranges, validated
 from ._solvers import SOLVERS, ExponentialEuler, SolverNeeds, solver_needs
@@ -122,6 +124,7 @@ def _fixed_chunk(system, params, needs: SolverNeeds, plan: _Plan, y0, key, first
 
         def body(state, _):
             y, ok, k = state
+            jax.lax.cond(k % POLL_STEPS == 0, lambda: jax.debug.callback(poll), lambda: None)  # Ctrl-C
             y1, good = step(y, y_start, ok, k, keys, blocks)
             return (y1, ok & good, k + 1), None
 
@@ -186,6 +189,7 @@ def _adaptive_chunk(
         bad = (sol.result != dfx.RESULTS.successful) | ~jnp.all(jnp.isfinite(ys))
         return observe(ts, ys, params), bad
 
+    jax.debug.callback(poll)  # Ctrl-C, between chunks
     obs, bad = jax.vmap(one)(y0, ids)
     meter_state = meter.step(meter_state, jnp.asarray(chunk_index + 1, dtype) / plan.n_chunks)
     return obs, bad, meter_state
@@ -287,7 +291,7 @@ def _run(system: StochasticSystem, needs: SolverNeeds, y0, key, first_path, abou
     if plan.traced_stability:  # traced parameters: the stability limit is checked here, with the eager check's cause
         work = _work_dtype(y0.dtype)
         step = jnp.asarray((plan.t1 - plan.t0) / plan.n_steps, work)
-        unstable, off, _ = _linear_modes(system, needs, jax.lax.stop_gradient(cast_floats(params, work)), step)
+        unstable, off, _ = _linear_modes(system, needs, jax.lax.stop_gradient(params), step)
         jax.debug.callback(
             functools.partial(_warn_variance, solver=needs.name, dt=(plan.t1 - plan.t0) / plan.n_steps), off
         )
@@ -337,7 +341,7 @@ def _linear_modes(system: StochasticSystem, needs: SolverNeeds, params, dt):
     one step adds, against the exact ``1/(2|x|)``; the factor returned is the ratio furthest
     from 1 (Euler–Maruyama on a real ``λ``: ``1/(1 − |λ|h/2)``, 2× at the ball's ``ε·dt = 1/2``).
     """
-    a = cast(Callable, system.linear_drift)(params).astype(dt.dtype)  # declared: checked by the caller
+    a = cast(Callable, system.linear_drift)(cast_floats(params, dt.dtype)).astype(dt.dtype)  # declared
     lams = jnp.linalg.eigvals(a)
     zero = jnp.zeros((2,), dt.dtype)
 
@@ -380,8 +384,9 @@ def _check_linear_stability(system: StochasticSystem, needs: SolverNeeds, dt: fl
     if not _checks_linear(system, needs) or not is_concrete(system.params):
         return
     work = _work_dtype(dtype)
-    with jax.ensure_compile_time_eval():  # concrete parameters: known now, also under an outer jit
-        unstable, off, gain = _linear_modes(system, needs, cast_floats(system.params, work), jnp.asarray(dt, work))
+    # concrete parameters: known now, also under an outer jit (where the helper is evaluated op by op)
+    with jax.ensure_compile_time_eval() if under_trace() else contextlib.nullcontext():
+        unstable, off, gain = _linear_modes(system, needs, system.params, jnp.asarray(dt, work))
         if bool(unstable):
             fix = SimulationResult[SimulationResult.unstable_step].split("; ", 1)[1]
             raise ValueError(
@@ -396,10 +401,9 @@ def _check_linear_stability(system: StochasticSystem, needs: SolverNeeds, dt: fl
 def _variance_message(system: StochasticSystem, needs: SolverNeeds, dt: float, off: float, work) -> str:
     """The warning for a stationary variance off by more than 10 %: the factor, the step and the solvers that
     bring it within 10 %."""
-    params = cast_floats(system.params, work)
 
     def within(n: SolverNeeds, step: float) -> bool:
-        unstable, off, _ = _linear_modes(system, n, params, jnp.asarray(step, work))
+        unstable, off, _ = _linear_modes(system, n, system.params, jnp.asarray(step, work))
         return not bool(unstable) and abs(float(off) - 1) <= 0.1
 
     step = next((dt / 2**k for k in range(1, 30) if within(needs, dt / 2**k)), dt / 2**30)
@@ -617,9 +621,11 @@ def simulate(
         raise TypeError(
             f"progress_meter={meter!r}; expected a diffrax progress meter, e.g. diffrax.TqdmProgressMeter()."
         )
-    ts, sums, moments, (n_failed, first_failed), failed, paths, result = _run(
-        system, needs, y0, key, jnp.asarray(first_path), about, plan, meter
-    )
+    with watching():  # Ctrl-C stops the compiled run within POLL_STEPS steps
+        ts, sums, moments, (n_failed, first_failed), failed, paths, result = _run(
+            system, needs, y0, key, jnp.asarray(first_path), about, plan, meter
+        )
+        jax.block_until_ready(moments)
     details = ""
     if is_concrete(n_failed) and int(n_failed) > 0:
         details = f"{int(n_failed)} of {n_paths} paths failed, first path {int(first_failed)}: "

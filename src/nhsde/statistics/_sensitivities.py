@@ -37,11 +37,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from .._ensemble import AbstractMoments, Ensemble, Save, SimulationError
+from .._ensemble import AbstractMoments, Ensemble, Save, check_result, covariance_variance, failure_result
 from .._misc import is_concrete
 from .._options import AbstractSteps, Batching
 from .._params import AbstractParameters
-from .._simulate import MIN_PATHS, simulate
+from .._simulate import simulate
 from .._system import StochasticSystem
 
 __all__ = ["Sensitivities", "moment_sensitivities"]
@@ -136,7 +136,7 @@ def _statistics(paths, tangents, simulation_failed):
     cov = jnp.einsum("pni,pnj->nij", f, f) / (n - 1)
     mean_se = _sqrt(jnp.diagonal(cov, axis1=1, axis2=2) / n)
     fourth = jnp.einsum("pni,pnj->nij", f * f, f * f) / n
-    cov_se = _sqrt((fourth - cov**2) / n)
+    cov_se = _sqrt(covariance_variance(cov, fourth, n))
 
     # derivatives: means of the tangents and of the influence terms ψ (never materialised: (p, N, n, k, k))
     t = jnp.where(ok[None, :, None, None], t, 0.0)
@@ -232,20 +232,15 @@ def moment_sensitivities(
         progress_meter=progress_meter,
     )
     ens, moments, d_moments, count, n_failed, failed = _sensitivities(system, wrt, values, y0, key, options)
-    if is_concrete(n_failed, count):
-        if on_failure == "raise" and int(n_failed) > 0:
-            raise SimulationError(
-                f"{int(n_failed)} of {n_paths} paths failed (non-finite state or tangent, or a solver error); "
-                "try a smaller dt, a stiffer-stable solver, or on_failure='exclude' to inspect them."
-            )
-        if int(count) < MIN_PATHS:
-            raise SimulationError(f"only {int(count)} of {n_paths} paths are usable; statistics need ≥ {MIN_PATHS}.")
+    result = failure_result(
+        unstable=False, n_failed=n_failed, n_used=count, raise_on_failure=on_failure == "raise", overflow=False
+    )
+    details = ""
+    if is_concrete(n_failed) and int(n_failed) > 0:
+        details = f"{int(n_failed)} of {n_paths} paths failed (a non-finite state or tangent, or a solver error): "
+    moments, d_moments = check_result((moments, d_moments), result, "moment_sensitivities", details)
     mean, cov, mean_se, cov_se = moments
     d_mean, d_cov, d_mean_se, d_cov_se = d_moments
-    if not is_concrete(n_failed):
-        if on_failure == "raise":
-            mean = eqx.error_if(mean, n_failed > 0, "moment_sensitivities: some paths or their tangents failed.")
-        mean = eqx.error_if(mean, count < MIN_PATHS, f"moment_sensitivities: fewer than {MIN_PATHS} usable paths.")
     return Sensitivities(
         ts=ens.ts,
         mean=mean,

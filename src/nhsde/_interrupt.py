@@ -1,0 +1,67 @@
+"""Ctrl-C inside a compiled run: a compiled loop asks the host, every few thousand steps, whether SIGINT arrived.
+
+While XLA runs, Python's own SIGINT handler cannot run (the main thread is inside the
+computation), so a long ``simulate`` would ignore Ctrl-C until it ends.  :func:`watching`
+routes the signal's number to a pipe as it arrives (``signal.set_wakeup_fd``, written by
+the C-level handler from any thread), and :func:`poll`, called from inside the compiled
+loop through ``jax.debug.callback``, reads it and raises, which aborts the computation;
+Python's handler then raises ``KeyboardInterrupt`` in the main thread as usual.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import threading
+
+__all__ = ["POLL_STEPS", "poll", "watching"]
+
+POLL_STEPS = 1024
+"""Steps between two polls of a compiled loop (a chunk's step is far dearer than the poll)."""
+
+_pipe: tuple[int, int] | None = None
+_pending = threading.Event()
+
+
+def _drain() -> None:
+    if _pipe is None:
+        return
+    try:
+        data = os.read(_pipe[0], 512)
+    except BlockingIOError:
+        return
+    if signal.SIGINT in data:
+        _pending.set()
+
+
+def poll(*_) -> None:
+    """Raise once SIGINT arrived during :func:`watching` (called on the host from a compiled loop)."""
+    _drain()
+    if _pending.is_set():
+        raise KeyboardInterrupt("interrupted (SIGINT) during a compiled run")
+
+
+@contextlib.contextmanager
+def watching():
+    """Route SIGINT to :func:`poll` while the block runs (main thread only; elsewhere a no-op)."""
+    global _pipe
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    if _pipe is None:
+        _pipe = os.pipe()
+        for fd in _pipe:
+            os.set_blocking(fd, False)
+    _pending.clear()
+    try:
+        previous = signal.set_wakeup_fd(_pipe[1], warn_on_full_buffer=False)
+    except ValueError:  # not the main interpreter
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.set_wakeup_fd(previous)
+        _drain()
+        _pending.clear()
