@@ -349,6 +349,26 @@ def _check_sensitivity_memory(args, state_dim: int, n_params: int):
         )
 
 
+def _print_effective_diffusion(scene: str, ens, p) -> None:
+    """``D = ½ dK/dt`` of the dependent coordinates over the second half, each entry ± its standard error (from
+    the paths), and the closed form where the scene has one: the ball's ``νδ²/(8ε²)`` per axis."""
+    from .. import statistics
+
+    d, se = statistics.effective_diffusion(ens), statistics.effective_diffusion_se(ens)
+    names = statistics.drift_statistics(ens).names
+    exact = None
+    if scene == "ball-on-vibrating-plane" and float(p.eps) > 0:
+        exact = float(p.nu * p.delta**2 / (8 * p.eps**2))
+    print("\neffective diffusion D = ½ dK/dt over the second half (value ± standard error)")
+    for i, a in enumerate(names):
+        for j, b in enumerate(names[: i + 1]):
+            line = f"  D[{a},{b}] = {_fmt(d[i, j], se[i, j])}"
+            if exact is not None:
+                value = exact if i == j else 0.0
+                line += f"   closed form {value:.6g} (nu delta²/(8 eps²) on the diagonal, for long times)"
+            print(line)
+
+
 def _cmd_simulate_scene(args) -> int:
     """Simulate a scene, print its statistics at ``t1`` with their ``eps``/``nu`` derivatives, save with ``--out``."""
     if _accuracy_given(args):
@@ -436,8 +456,7 @@ def _cmd_simulate_scene(args) -> int:
                 + "".join(f"{_fmt(d_cov[q][last, i, j], d_cov_se[q][last, i, j]):>26}" for q in range(2))
             )
     if "dependent_coordinate" in roles and len(ens.ts) >= 3:
-        d_eff = statistics.effective_diffusion(ens)
-        print("\neffective diffusion (½ dK/dt over the second half):", np.array2string(np.asarray(d_eff), precision=5))
+        _print_effective_diffusion(args.scene, ens, p)
     if args.scene == "ball-on-vibrating-plane":
         t = jnp.asarray(ds["time"].values[last])
         kxx, kxu, kuu = ball_covariances(t, p.eps, p.nu, p.delta)
@@ -605,6 +624,16 @@ def _current_directory_on_path():
     finally:
         if added:
             sys.path.remove(here)
+
+
+def _runtime_message(error: Exception) -> str:
+    """The library's message inside a run-time error raised from compiled code (``eqx.error_if``), without the
+    tracebacks around it."""
+    text = str(error)
+    for marker in ("EquinoxRuntimeError: ", "SimulationError: "):
+        if marker in text:
+            return text.rsplit(marker, 1)[1].split("\n\n", 1)[0]
+    return text.splitlines()[0]
 
 
 def main(argv=None) -> int:
