@@ -42,12 +42,22 @@ def poll(*_) -> None:
         raise KeyboardInterrupt("interrupted (SIGINT) during a compiled run")
 
 
+_depth = 0
+
+
 @contextlib.contextmanager
 def watching():
-    """Route SIGINT to :func:`poll` while the block runs (main thread only; elsewhere a no-op)."""
-    global _pipe
-    if threading.current_thread() is not threading.main_thread():
-        yield
+    """Route SIGINT to :func:`poll` while the block runs (main thread only; elsewhere a no-op; nests).
+
+    Computations dispatched in the block must finish in it (``jax.block_until_ready``) to be interruptible.
+    """
+    global _pipe, _depth
+    if _depth or threading.current_thread() is not threading.main_thread():
+        _depth += 1
+        try:
+            yield
+        finally:
+            _depth -= 1
         return
     if _pipe is None:
         _pipe = os.pipe()
@@ -59,9 +69,11 @@ def watching():
     except ValueError:  # not the main interpreter
         yield
         return
+    _depth = 1
     try:
         yield
     finally:
+        _depth = 0
         signal.set_wakeup_fd(previous)
         _drain()
         _pending.clear()

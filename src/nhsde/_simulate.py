@@ -625,7 +625,8 @@ def simulate(
         ts, sums, moments, (n_failed, first_failed), failed, paths, result = _run(
             system, needs, y0, key, jnp.asarray(first_path), about, plan, meter
         )
-        jax.block_until_ready(moments)
+        if not under_trace():
+            jax.block_until_ready(moments)
     details = ""
     if is_concrete(n_failed) and int(n_failed) > 0:
         details = f"{int(n_failed)} of {n_paths} paths failed, first path {int(first_failed)}: "

@@ -23,6 +23,7 @@ from typing import cast
 import numpy as np
 
 from .._compilation_cache import enable_compilation_cache
+from .._interrupt import watching
 from ._distributed import add_flags, processes
 from ._fit import fit_data_flags
 from ._sweep import sweep_command, sweep_flags
@@ -232,9 +233,10 @@ def _accuracy_given(args) -> bool:
     return args.rmse is not None or args.relative_rmse is not None
 
 
-def _run_accuracy(config, built) -> int:
+def _run_accuracy(config, built, out: Path | None = None) -> int:
     """``[accuracy]`` of a run (or ``--rmse``): one statistic at ``t1`` by :func:`~nhsde.statistics.to_accuracy`,
-    with its pathwise derivatives in ``eps`` and ``nu`` (``eps`` only at ``nu = 0``) and their standard errors."""
+    with its pathwise derivatives in ``eps`` and ``nu`` (``eps`` only at ``nu = 0``) and their standard errors;
+    with ``out``, the estimate is also written there as JSON (:func:`_write_estimate`)."""
     from .._ensemble import Save
     from .._weak import PlatenWeak2
     from ..scenes import ball_covariances
@@ -289,7 +291,51 @@ def _run_accuracy(config, built) -> int:
         p = built.system.params
         kxx, kxu, kuu = ball_covariances(np.float64(s["t1"]), p.eps, p.nu, p.delta)
         print(f"closed form (S0 (3.1)): k_xx={float(kxx):.6g}  k_xu={float(kxu):.6g}  k_uu={float(kuu):.6g}")
+    if out is not None:
+        _write_estimate(out, config, " ".join(statistic), result)
+        print(f"\nsaved {out} (JSON)")
     return 0
+
+
+def _write_estimate(out: Path, config, statistic: str, result) -> None:
+    """The estimate of ``--rmse`` (or ``[accuracy]``) as JSON at exactly ``out``, written whole then renamed:
+    ``format = "nhsde-estimate"``, the configuration, the statistic at ``t``, ``value`` and ``se``, ``bias``, the
+    target and estimated RMSE, ``derivatives`` ``{name: {"value", "se"}}``, the work, the estimator chosen and
+    the provenance (package versions and sources, git revision, time)."""
+    import json
+    import os
+
+    from ._store import provenance
+
+    estimate = {
+        "format": "nhsde-estimate",
+        "format_version": 1,
+        "config": config.data,
+        "scene": config.data["scene"],
+        "parameters": config.parameters(),
+        "statistic": statistic,
+        "t": config.data["solver"]["t1"],
+        "value": float(result.value),
+        "se": float(result.standard_error),
+        "bias": float(result.bias),
+        "rmse_target": float(result.rmse),
+        "rmse_estimated": float(result.estimated_rmse),
+        "derivatives": {
+            q: {"value": float(v), "se": float(e)}
+            for q, v, e in zip(result.wrt, result.derivative, result.derivative_se, strict=True)
+        },
+        "work_path_steps": float(result.work),
+        "pilot_work_path_steps": float(result.pilot_work),
+        "seconds": float(result.seconds),
+        "estimator": str(result.choice),
+        **provenance(config),
+    }
+    partial = out.with_name(out.name + ".partial")
+    try:
+        partial.write_text(json.dumps(estimate, indent=2, sort_keys=True) + "\n")
+        os.replace(partial, out)
+    except OSError as e:
+        raise OSError(f"{out}: cannot write the estimate ({e.strerror or e}).") from None
 
 
 def _cmd_accuracy_scene(args) -> int:
@@ -301,7 +347,7 @@ def _cmd_accuracy_scene(args) -> int:
     from ..scenes import get_scene
     from ._config import ConfigError, RunConfig
 
-    for name in ("paths", "save_points", "out"):
+    for name in ("paths", "save_points"):
         if getattr(args, name) is not None:
             flag = "--" + name.replace("_", "-")
             raise ConfigError(

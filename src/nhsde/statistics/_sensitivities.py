@@ -38,7 +38,8 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._ensemble import AbstractMoments, Ensemble, Save, check_result, covariance_variance, failure_result
-from .._misc import is_concrete
+from .._interrupt import watching
+from .._misc import is_concrete, under_trace
 from .._options import AbstractSteps, Batching
 from .._params import AbstractParameters
 from .._simulate import simulate
@@ -231,7 +232,11 @@ def moment_sensitivities(
         first_path=first_path,
         progress_meter=progress_meter,
     )
-    ens, moments, d_moments, count, n_failed, failed = _sensitivities(system, wrt, values, y0, key, options)
+    with watching():  # Ctrl-C stops the compiled run
+        out = _sensitivities(system, wrt, values, y0, key, options)
+        if not under_trace():
+            jax.block_until_ready(out)
+    ens, moments, d_moments, count, n_failed, failed = out
     result = failure_result(
         unstable=False, n_failed=n_failed, n_used=count, raise_on_failure=on_failure == "raise", overflow=False
     )
