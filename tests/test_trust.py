@@ -160,3 +160,25 @@ def test_ctrl_c_stops_a_long_solve_from_python():
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
     assert "interrupted after" in out.stdout, out.stderr
     assert float(out.stdout.split()[-1]) < 15 + 10, out.stdout
+
+
+def test_traced_parameter_range_message_under_jit_and_filter_jit():
+    """jax.jit(k_xx)(-1.0): JAX wraps a run-time check's message in its own error (equinox.filter_jit in its own
+    frame); the library's message is in it, with the cause and the range."""
+    with pytest.raises(eqx.EquinoxRuntimeError, match="parameter eps must be finite and ≥ 0"):
+        eqx.filter_jit(k_xx)(jnp.asarray(-1.0))
+    with pytest.raises(jax.errors.JaxRuntimeError, match="parameter eps must be finite and ≥ 0"):
+        jax.jit(k_xx)(-1.0)
+
+
+def test_cli_run_where_every_path_overflows_prints_one_line(tmp_path):
+    """nu = 1e30 in float32: every path's fourth moments overflow; this used to be a 46-line traceback."""
+    env = dict(os.environ, NHSDE_COMPILATION_CACHE="off")
+    command = [sys.executable, "-m", "nhsde.runs", "simulate", "ball-on-vibrating-plane"]
+    command += ["--paths", "64", "--t1", "0.1", "--dt", "0.01", "--set", "nu=1e30"]
+    out = subprocess.run(command, capture_output=True, text=True, env=env, cwd=tmp_path, timeout=300)
+    assert out.returncode == 1, out.stderr
+    assert out.stderr.strip().splitlines() == [
+        "nhsde simulate: fewer than 4 paths succeeded; statistics and their standard errors need ≥ 4: try a smaller "
+        "dt or a stiffer-stable solver."
+    ]
