@@ -5,6 +5,7 @@ requested RMSE and a stated confidence (χ² bound on the realised mean-square e
 """
 
 import dataclasses
+import json
 import math
 
 import jax
@@ -197,9 +198,14 @@ def test_cli_rmse_prints_the_choice_and_value(capsys, tmp_path):
         'scene = "ball-on-vibrating-plane"\n[solver]\ndt = 0.25\nt1 = 1.0\n[statistics]\nsave_points = 2\n'
         '[accuracy]\nrmse = 0.004\nsolver = "euler"\n'
     )
-    assert main(["simulate", "--config", str(run)]) == 0
+    assert main(["simulate", "--config", str(run), "--out", str(tmp_path / "estimate.json")]) == 0
     out = capsys.readouterr().out
     assert "K[x,x] = " in out and "dK[x,x]/deps = " in out and "dK[x,x]/dnu = " in out, out
+    stored = json.loads((tmp_path / "estimate.json").read_text())  # --out: the estimate as JSON, as printed
+    value, se = (float(x) for x in out.split("\nK[x,x] = ")[1].split("(")[0].split("±"))
+    assert stored["format"] == "nhsde-estimate" and stored["statistic"] == "cov x x" and stored["t"] == 1.0
+    assert f"{stored['value']: .6g} ± {stored['se']:.2g}" == f"{value: .6g} ± {se:.2g}"
+    assert set(stored["derivatives"]) == {"eps", "nu"} and stored["rmse_target"] == 0.004
     for extra, match in [
         (["--rmse", "0"], "--rmse 0"),
         (["--rmse", "0.01", "--relative-rmse", "0.1"], "exactly one"),

@@ -93,3 +93,24 @@ def test_without_dependent_coordinates_the_error_gives_the_fix_of_the_route():
     velocities = Moments(jnp.zeros(2), jnp.zeros((2, 2)), jnp.zeros((2, 2, 2)), ("u_x", "u_y"), ("velocity",) * 2)
     with pytest.raises(ValueError, match="coordinates=\\('u_x',\\)\\), or build the scene with drift=True"):
         statistics.drift_statistics(velocities)
+
+
+def test_the_effective_diffusions_standard_error_matches_its_spread_over_keys():
+    """16 independent ensembles: the spread of ``D̂`` agrees with the mean reported SE, within the 99.9 % range of
+    a sample standard deviation of 16 values (χ² with 15 degrees of freedom)."""
+    from scipy.stats import chi2
+
+    scene = BallOnVibratingPlane(eps=1.0, nu=1.0)
+    run = dict(n_paths=256, t1=4.0, dt=0.05, save=nhsde.Save(n=9, paths=True))
+    d, se = [], []
+    for k in range(16):
+        ens = nhsde.simulate(scene.build(), scene.initial_state(), jax.random.key(100 + k), **run)
+        d.append(np.asarray(statistics.effective_diffusion(ens)))
+        se.append(np.asarray(statistics.effective_diffusion_se(ens)))
+    ratio = np.std(d, axis=0, ddof=1) / np.mean(se, axis=0)
+    low, high = np.sqrt(chi2.ppf([0.0005, 0.9995], 15) / 15)
+    assert np.all((low < ratio) & (ratio < high)), (ratio, low, high)
+    with pytest.raises(ValueError, match=r"needs the paths: simulate with Save\(paths=True\)"):
+        statistics.effective_diffusion_se(
+            nhsde.simulate(scene.build(), scene.initial_state(), jax.random.key(0), n_paths=8, t1=1.0, dt=0.05)
+        )

@@ -52,6 +52,7 @@ from .._ensemble import Save
 from .._options import Batching, FixedSteps
 from .._simulate import simulate
 from .._system import StochasticSystem
+from ..statistics import moment_sensitivities, normal_approximation
 from ._observations import (
     Observations,
     statistic_covariance,
@@ -150,8 +151,6 @@ class Simulated(AbstractStatisticsModel):
         :func:`~nhsde.statistics.moment_sensitivities` (per-path tangents, forward mode); its
         Jacobian equals ``jax.jacfwd`` of :meth:`moments`' statistic vector to rounding.
         """
-        from ..statistics import moment_sensitivities
-
         index, options = self._options(ts, names, paths=False)
         sens = moment_sensitivities(system, self.y0, self.key, wrt=tuple(vary), **options)
 
@@ -207,8 +206,6 @@ class MomentEquations(AbstractStatisticsModel):
     order: int = eqx.field(static=True, default=5)
 
     def moments(self, system, ts, names):
-        from ..statistics import normal_approximation
-
         index = _save_grid(ts, self.t0, "MomentEquations")
         ens = normal_approximation(
             system,

@@ -377,7 +377,7 @@ def _cmd_accuracy_scene(args) -> int:
         config = RunConfig.from_dict(raw)
     except ConfigError as e:
         raise ConfigError(_as_flags(str(e)), e.key) from None
-    return _run_accuracy(config, config.build())
+    return _run_accuracy(config, config.build(), Path(args.out) if args.out else None)
 
 
 _PARAMS = ("eps", "nu")
@@ -405,14 +405,14 @@ def _print_effective_diffusion(scene: str, ens, p) -> None:
     exact = None
     if scene == "ball-on-vibrating-plane" and float(p.eps) > 0:
         exact = float(p.nu * p.delta**2 / (8 * p.eps**2))
-    print("\neffective diffusion D = ½ dK/dt over the second half (value ± standard error)")
+    print(
+        "\neffective diffusion D = ½ dK/dt over the second half (value ± standard error"
+        + ("; closed form: nu delta²/(8 eps²) on the diagonal, 0 off it, for long times)" if exact is not None else ")")
+    )
     for i, a in enumerate(names):
         for j, b in enumerate(names[: i + 1]):
-            line = f"  D[{a},{b}] = {_fmt(d[i, j], se[i, j])}"
-            if exact is not None:
-                value = exact if i == j else 0.0
-                line += f"   closed form {value:.6g} (nu delta²/(8 eps²) on the diagonal, for long times)"
-            print(line)
+            closed = "" if exact is None else f"   closed form {exact if i == j else 0.0:.6g}"
+            print(f"  D[{a},{b}] = {_fmt(d[i, j], se[i, j])}{closed}")
 
 
 def _cmd_simulate_scene(args) -> int:
@@ -538,9 +538,7 @@ def _cmd_simulate_config(args) -> int:
         )
     config = _load(args, "simulate")
     if "accuracy" in config.data:
-        if args.out:
-            raise ConfigError("--out: a run file with [accuracy] prints its estimate and writes no netCDF file.")
-        return _run_accuracy(config, config.build())
+        return _run_accuracy(config, config.build(), Path(args.out) if args.out else None)
     out = Path(args.out) if args.out else Path(args.config).with_suffix(".nc")
     n, chunk = config.data["paths"]["n"], config.data["paths"]["chunk"]
 
@@ -616,14 +614,20 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--config", help="a TOML run file; runs (or resumes) it, writing netCDF to --out")
     sim.add_argument("--paths", type=int, help="number of paths (default 4096)")
     sim.add_argument("--t1", type=float, help="final time (default 10)")
-    sim.add_argument("--dt", type=float, help="time step (default 0.01)")
+    sim.add_argument(
+        "--dt",
+        type=float,
+        help="time step (default 0.01); with --rmse the coarsest step the estimators consider "
+        "(default: t1 in equal steps of at most 0.25)",
+    )
     sim.add_argument("--solver", help="euler, milstein, heun, heun2, sra1 or exponential (default euler)")
     sim.add_argument("--seed", type=int, help="random seed (default 0)")
     sim.add_argument("--save-points", type=int, help="save times from 0 to t1 (default 11)")
     sim.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="set a scene parameter")
     sim.add_argument(
         "--out",
-        help="write the netCDF run file here, exactly this name (for --config default: the config's name with .nc)",
+        help="write the netCDF run file here, exactly this name (for --config default: the config's name with .nc); "
+        "with --rmse or [accuracy], the estimate as JSON",
     )
     sim.add_argument("--x64", action="store_true", help="simulate in float64 (default float32; sums are float64)")
     sim.add_argument(

@@ -83,7 +83,9 @@ _OMEGA_VELOCITY = _omega(0, 1)
 
 
 class BallOnVibratingPlane(AbstractScene):
-    """Scene: the ball of S0 §3, built into a :class:`StochasticSystem` by :meth:`build`.
+    """A ball rolling on a randomly vibrating rough plane, slowed by viscous friction.
+
+    The ball of S0 §3, built into a :class:`StochasticSystem` by :meth:`build`.
 
     Keyword arguments are the :class:`BallParameters` (``eps``, ``nu``, ``radius``,
     ``inertia_ratio``) and what the user wants to observe:

@@ -2,6 +2,7 @@
 
 # No `from __future__ import annotations`: equinox reads AbstractVar/AbstractClassVar from live annotations.
 import abc
+import re
 import types
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any, ClassVar
@@ -89,8 +90,11 @@ class AbstractScene(eqx.Module):
 
     @classmethod
     def description(cls) -> str:
-        """One line: the first line of the class docstring."""
-        return (cls.__doc__ or "").strip().splitlines()[0]
+        """One line of plain text: the first line of the class docstring, reST roles and literals unwrapped
+        (``:class:`~a.B``` → ``B``, ````x```` → ``x``)."""
+        line = ((cls.__doc__ or "").strip().splitlines() or [""])[0]
+        line = re.sub(r":[\w:]+:`~?(?:[^`<]*<)?([^`>]*)>?`", lambda m: m.group(1).rsplit(".", 1)[-1], line)
+        return line.replace("``", "")
 
 
 def scene_registry(package: str) -> Mapping[str, type[AbstractScene]]:

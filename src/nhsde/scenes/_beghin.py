@@ -89,7 +89,10 @@ _SERVO = ServoConstraint(matrix=_servo_matrix, realisation=_servo_on_disk)
 
 
 class BeghinPlate(AbstractSpecScene):
-    """Beghin's plate hinged to a disk, α − β = π/2 kept by contact or by a servomotor (S1 Ex. 3.1)."""
+    """Beghin's plate hinged to a disk, α − β = π/2 kept by contact or by a servomotor.
+
+    S1 Example 3.1.
+    """
 
     name: ClassVar[str] = "beghin-plate"
     Parameters: ClassVar[type[BeghinParameters]] = BeghinParameters

@@ -163,7 +163,9 @@ def _energy(t, y, p):
 
 
 class BodyOnVibratingPlane(AbstractScene):
-    """Scene: a heavy convex body rolling on a vibrating rough plane, S0 §5, friction ``Φ₁`` or ``Φ₂``.
+    """A heavy convex body rolling on a randomly vibrating rough plane, with friction phi1 or phi2.
+
+    S0 §5, friction ``Φ₁`` or ``Φ₂``.
 
     Keyword arguments: ``eps``, ``nu``, ``gravity`` and ``body`` (a
     :class:`~nhsde.bodies.RigidBody`; default: a homogeneous oblate spheroid with

@@ -87,7 +87,7 @@ def _diffusion(t, y, p):
 
 
 class ChaplyginBall(AbstractScene):
-    """Scene: Chaplygin's balanced ball on a rough plane under a random couple and rolling resistance.
+    """Chaplygin's balanced ball on a rough plane under a random couple and rolling resistance.
 
     State ``(M, γ)`` (angular momentum about the contact point, upward vertical in
     the body axes); ``drift=True`` adds the horizontal axis ``α`` and the contact

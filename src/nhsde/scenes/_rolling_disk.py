@@ -106,7 +106,7 @@ def _torques(q, v, pi, t, p):
 
 
 class RollingDisk(AbstractSpecScene):
-    """A disk or hoop rolling on a plane under gravity, free to tilt (Voronets form in ``(ψ̇, θ̇, φ̇)``).
+    """A disk or hoop rolling on a plane under gravity, free to tilt (Voronets form in the rates of ψ, θ, φ).
 
     ``spin`` is the initial rolling rate ``φ̇`` of the upright straight rolling
     the scene starts from (``ẋ = R φ̇``).

@@ -86,7 +86,7 @@ _ENERGY_FULL, _ENERGY_REDUCED = _energy(3, 4), _energy(0, 1)
 
 
 class ChaplyginSleigh(AbstractScene):
-    """Scene: the noisy Chaplygin sleigh.
+    """The noisy Chaplygin sleigh: a knife edge with friction, a random force along it and a random torque.
 
     ``drift=True`` keeps the contact point ``(x, y)`` and heading ``θ`` in the
     state; otherwise the state is ``(v, ω)`` alone (their dynamics do not involve

@@ -1,7 +1,8 @@
 """Statistics of ensembles and of the moment equations: drift of the dependent coordinates, stationary laws.
 
 - From the moments of an ensemble (:func:`~nhsde.simulate`, or the moment
-  equations): :func:`drift_statistics` (S0 (6.7)), :func:`effective_diffusion`,
+  equations): :func:`drift_statistics` (S0 (6.7)), :func:`effective_diffusion` (and its
+  standard error from the paths, :func:`effective_diffusion_se`),
   :func:`stationary_moments`; from its paths: :func:`green_kubo`.
 - The normal approximation (S0 §6): :func:`normal_approximation` over time,
   :func:`stationary_drift` in the stationary regime.
@@ -30,6 +31,7 @@ from ._drift import (
     StationaryMoments as StationaryMoments,
     drift_statistics as drift_statistics,
     effective_diffusion as effective_diffusion,
+    effective_diffusion_se as effective_diffusion_se,
     fluctuation_drift as fluctuation_drift,
     green_kubo as green_kubo,
     stationary_moments as stationary_moments,

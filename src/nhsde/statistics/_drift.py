@@ -31,6 +31,7 @@ __all__ = [
     "StationaryMoments",
     "drift_statistics",
     "effective_diffusion",
+    "effective_diffusion_se",
     "fluctuation_drift",
     "green_kubo",
     "stationary_moments",
@@ -166,15 +167,47 @@ def effective_diffusion(
         0.0638
     """
     stats = drift_statistics(ens, coordinates)
-    ts = ens.ts
+    return jnp.einsum("n,nij->ij", _slope_weights(ens.ts, t_from), stats.fluctuation) / 2
+
+
+def _slope_weights(ts, t_from: float | None):
+    """``c`` with ``Σ c_n K(t_n)`` the least-squares slope of ``K`` over the save times ``t ≥ t_from``."""
     start = ts[-1] / 2 + ts[0] / 2 if t_from is None else t_from
     w = (ts >= start).astype(ts.dtype)
     if int(jnp.sum(w)) < 2:
         raise ValueError(f"t_from={start}: fewer than two save times at or after it; save more points.")
     tbar = jnp.sum(w * ts) / jnp.sum(w)
     dt = w * (ts - tbar)
-    slope = jnp.einsum("n,nij->ij", dt, stats.fluctuation) / jnp.sum(dt * (ts - tbar))
-    return slope / 2
+    return dt / jnp.sum(dt * (ts - tbar))
+
+
+def effective_diffusion_se(
+    ens: Ensemble, t_from: float | None = None, coordinates: tuple[str, ...] | None = None
+) -> Float[Array, "k k"]:
+    """The Monte-Carlo standard error of :func:`effective_diffusion`, from the paths (``Save(paths=True)``).
+
+    ``D̂ = ½ Σ_n c_n K̂(t_n)`` is a linear combination of sample covariances at several times of the same
+    paths, so their errors are correlated.  With ``F_p(t) = z_p(t) − m(t)`` over the ``N`` paths used, the
+    influence of path ``p`` is ``ψ_p = ½ Σ_n c_n F_p(t_n) F_p(t_n)ᵀ`` and (delta method, as for
+    :func:`moment_sensitivities`) ``se(D̂) = N/(N−1) · std(ψ_p)/√N``.
+
+    Arguments:
+        ens: an :class:`~nhsde.Ensemble` with per-path values (``Save(paths=True)``).
+        t_from, coordinates: as for :func:`effective_diffusion`.
+
+    Returns:
+        ``(k, k)``, the standard error of each entry of ``D``.
+    """
+    if ens.paths is None or ens.failed is None:
+        raise ValueError("effective_diffusion_se needs the paths: simulate with Save(paths=True).")
+    names = drift_statistics(ens, coordinates).names
+    idx = np.asarray([ens.names.index(n) for n in names])
+    used = ~np.asarray(ens.failed)
+    z = jnp.asarray(ens.paths)[used][..., idx]  # (N, n, k)
+    f = z - jnp.mean(z, axis=0)
+    psi = jnp.einsum("n,pni,pnj->pij", _slope_weights(ens.ts, t_from).astype(f.dtype), f, f) / 2
+    n = psi.shape[0]
+    return n / (n - 1) * jnp.std(psi, axis=0, ddof=1) / math.sqrt(n)
 
 
 def stationary_moments(ens: AbstractMoments, t_from: float) -> StationaryMoments:

@@ -1,0 +1,33 @@
+"""What the command prints for people: plain text in ``nhsde scenes``, true help, the licence that ships."""
+
+import re
+from pathlib import Path
+
+import pytest
+
+from nhsde.runs import build_parser, main
+from nhsde.scenes import SCENES
+
+ROOT = Path(__file__).resolve().parents[1]
+MARKUP = re.compile(r":[\w:]+:`|``|\bS\d\b")  # reST roles and literals, the papers' shorthand (S0 §3)
+
+
+def test_nhsde_scenes_prints_plain_text(capsys):
+    assert main(["scenes"]) == 0
+    out = capsys.readouterr().out
+    assert all(f"{name}: " in out for name in SCENES)
+    assert not MARKUP.findall(out), [line for line in out.splitlines() if MARKUP.search(line)]
+
+
+def test_help_tells_the_dt_of_rmse(capsys):
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["simulate", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "time step (default 0.01); with --rmse the coarsest step the estimators consider" in text
+    assert "(default: t1 in equal steps of at most 0.25)" in text
+    assert "with --rmse or [accuracy], the estimate as JSON" in text
+
+
+def test_the_licence_is_mit_and_ships_by_default():
+    assert (ROOT / "LICENSE").read_text().startswith("MIT License")
+    assert 'license = { text = "MIT" }' in (ROOT / "pyproject.toml").read_text()  # hatchling adds LICENSE* files
