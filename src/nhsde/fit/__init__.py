@@ -19,6 +19,7 @@ from ._estimate import (
 )
 from ._observations import (
     Observations as Observations,
+    gaussian_statistic_covariance as gaussian_statistic_covariance,
     statistic_labels as statistic_labels,
     statistic_vector as statistic_vector,
 )

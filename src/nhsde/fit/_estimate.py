@@ -29,6 +29,16 @@ parameter ``a``,
 
 is ``FitResult.jacobian_relative_se``; the formula for ``Cov(θ̂)`` ignores it, and
 :func:`estimate` warns where ``ρ_a > 0.3`` (more model paths shrink it as ``1/√n_paths``).
+
+A summary table (``Observations.from_statistics`` without ``covariance``) gives each statistic's
+standard error but not the correlations between statistics at different times of the same paths, which
+are strong (a coordinate accumulates); ``Σ_obs = diag(se²)`` then makes ``Cov(θ̂)`` too small.  So
+:func:`estimate` fits with ``diag(se²)``, asks the model for the covariance ``Σ_m`` of the statistics of
+as many paths at ``θ̂`` (``statistics_covariance``: a simulated model's own paths, a closed form's two-time
+covariance through the Gaussian moments) and fits again from ``θ̂`` with ``Σ_obs = D R D`` — ``D`` the
+data's standard errors, ``R`` the correlations of ``Σ_m`` (``FitResult.correlations = "model"``).  Where
+the model gives none, it warns and multiplies ``Cov(θ̂)`` by ``max(1, χ²/dof)`` (``FitResult.inflation``),
+which cannot repair positive correlations: ``χ²`` sees only the variances.
 """
 
 from __future__ import annotations
@@ -55,6 +65,7 @@ from .._system import StochasticSystem
 from ..statistics import moment_sensitivities, normal_approximation
 from ._observations import (
     Observations,
+    gaussian_statistic_covariance,
     statistic_covariance,
     statistic_size,
     statistic_vector,
@@ -85,6 +96,13 @@ class AbstractStatisticsModel(eqx.Module):
         Zero here: a model without Monte-Carlo noise has an exact Jacobian.
         """
         return np.zeros((statistic_size(len(ts), len(names)), len(vary)))
+
+    def statistics_covariance(
+        self, system: StochasticSystem, ts: tuple[float, ...], names: tuple[str, ...], n_paths: int
+    ) -> np.ndarray | None:
+        """The covariance ``Σ`` of the statistic vector of ``n_paths`` observed paths, as the model predicts it
+        (correlations across times included), or ``None`` where the model cannot tell (here)."""
+        return None
 
 
 def _save_grid(ts, t0: float, model: str) -> np.ndarray:
@@ -182,6 +200,14 @@ class Simulated(AbstractStatisticsModel):
         ens, index = self._run(system, ts, names, paths=True)
         return statistic_covariance(np.asarray(ens.paths)[:, index])
 
+    def statistics_covariance(self, system, ts, names, n_paths):
+        """From the model's own paths: their statistics' covariance (influence functions), scaled from the
+        model's paths to ``n_paths``."""
+        ens, index = self._run(system, ts, names, paths=True)
+        assert ens.paths is not None and ens.failed is not None
+        good = ~np.asarray(ens.failed)
+        return statistic_covariance(np.asarray(ens.paths)[good][:, index]) * (int(good.sum()) / n_paths)
+
 
 class MomentEquations(AbstractStatisticsModel):
     """Statistics from the normal-approximation moment equations (S0 §6), exact for linear systems.
@@ -228,11 +254,18 @@ class ClosedForm(AbstractStatisticsModel):
 
     ``fn`` must return the components in the order of the observed names.
 
+    With ``cross(params, ts) -> (T, T, k, k)``, ``cross[a, b] = Cov(z(t_a), z(t_b))`` (the two-time
+    covariance, e.g. :func:`~nhsde.scenes.ball_two_time_covariances`), the model also gives the covariance of
+    the statistics of Gaussian paths (:func:`~nhsde.fit.gaussian_statistic_covariance`), which a fit to a
+    summary without correlations uses.
+
     Arguments:
         fn: ``fn(params, ts) -> (mean (T, k), cov (T, k, k))``, differentiable in ``params``.
+        cross: optional ``cross(params, ts) -> (T, T, k, k)``, the two-time covariance of Gaussian paths.
     """
 
     fn: Callable = eqx.field(static=True)
+    cross: Callable | None = eqx.field(static=True, default=None)
 
     def moments(self, system, ts, names):
         mean, cov = self.fn(system.params, jnp.asarray(ts))
@@ -246,6 +279,11 @@ class ClosedForm(AbstractStatisticsModel):
 
     def noise_covariance(self, system, ts, names):
         return _no_noise(ts, names)
+
+    def statistics_covariance(self, system, ts, names, n_paths):
+        if self.cross is None:
+            return None
+        return gaussian_statistic_covariance(np.asarray(self.cross(system.params, jnp.asarray(ts))), n_paths)
 
 
 def _no_noise(ts, names) -> np.ndarray:
@@ -320,7 +358,9 @@ class FitResult:
     degrees of freedom measures the misfit (``chi2 ≈ dof`` when the model fits).
     ``jacobian`` is ``G = ∂s/∂θ (S, p)`` at ``values``, ``jacobian_se`` its Monte-Carlo standard errors
     (zero for an exact model) and ``whitening`` ``W = L⁻¹`` with ``Σ_obs = L Lᵀ``;
-    :attr:`jacobian_relative_se` combines them.
+    :attr:`jacobian_relative_se` combines them.  ``correlations`` says where the correlations of the
+    observed statistics came from (``"paths"``, ``"given"``, ``"model"`` at the estimate, or ``"unknown"``), and
+    ``inflation`` the factor ``max(1, χ²/dof)`` the covariance was multiplied by where they are unknown.
     """
 
     names: tuple[str, ...]
@@ -335,6 +375,8 @@ class FitResult:
     jacobian: np.ndarray | None = None
     jacobian_se: np.ndarray | None = None
     whitening: np.ndarray | None = None
+    correlations: str = "paths"
+    inflation: float = 1.0
 
     @property
     def se(self) -> np.ndarray:
@@ -367,7 +409,14 @@ class FitResult:
             f"chi2 = {self.chi2:.2f} on {self.dof} degrees of freedom; {self.steps} optimizer steps"
             + ("" if self.converged else " (NOT converged)")
         )
-        return "\n".join(rows)
+        note = {
+            "given": "the statistics' correlations across times: given with the data",
+            "model": "the statistics' correlations across times: the model's at the estimate (the data gave "
+            "standard errors only)",
+            "unknown": f"the statistics' correlations across times are unknown: errors inflated by chi2/dof = "
+            f"{self.inflation:.3g}, and still too small where the statistics are positively correlated",
+        }.get(self.correlations)
+        return "\n".join(rows + ([note] if note else []))
 
 
 def _vary_bounds(params, vary):
@@ -476,6 +525,7 @@ def estimate(
         vary=vary,
         lower=lower,
     )
+    given_optimizer = optimizer
     optimizer = _lbfgs() if optimizer is None else optax.with_extra_args_support(optimizer)
     phi = jnp.asarray([t if lo is None else np.log(t - lo) for t, lo in zip(theta0, lower)], dtype)
     # Strong dtypes: the state after a step has no weak types, and the step compiles once.
@@ -521,7 +571,33 @@ def estimate(
         jacobian=g,
         jacobian_se=g_se,
         whitening=whiten,
+        correlations=observed.correlations,
     )
+    if observed.correlations == "unknown":
+        sigma = model.statistics_covariance(problem.system_at(theta), problem.ts, observed.names, observed.n_paths)
+        if sigma is not None:  # the model's correlations at θ̂, the data's own errors: fit again from θ̂
+            again = observed.with_correlations(sigma, "model")
+            return estimate(
+                system,
+                again,
+                model,
+                vary=vary,
+                init=result.params,
+                optimizer=given_optimizer,
+                max_steps=max_steps,
+                gtol=gtol,
+            )
+        inflation = max(1.0, chi2 / result.dof) if result.dof > 0 else 1.0
+        warnings.warn(
+            f"estimate: the observed statistics are a summary without correlations across times, and the model "
+            f"({type(model).__name__}) gives none; the errors assume independent statistics, inflated by "
+            f"chi2/dof = {inflation:.3g}, and are too small where the statistics are positively correlated (a "
+            "coordinate at several times): fit the paths, pass from_statistics(covariance=...), or use a model that "
+            "gives them (Simulated, ClosedForm(cross=...)).",
+            UserWarning,
+            stacklevel=2,
+        )
+        result = dataclasses.replace(result, cov=result.cov * inflation, inflation=inflation)
     for name, rel in zip(vary, result.jacobian_relative_se):
         if rel > _MAX_JACOBIAN_RELATIVE_SE:
             warnings.warn(

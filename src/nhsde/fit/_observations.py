@@ -32,7 +32,13 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["Observations", "statistic_labels", "statistic_size", "statistic_vector"]
+__all__ = [
+    "Observations",
+    "gaussian_statistic_covariance",
+    "statistic_labels",
+    "statistic_size",
+    "statistic_vector",
+]
 
 RESERVED = ("path", "t", "n_paths")
 """Columns of a data file that are not observed components."""
@@ -65,6 +71,32 @@ def statistic_covariance(paths) -> np.ndarray:
     i, j = np.triu_indices(z.shape[-1])
     psi = np.concatenate([z, z[..., i] * z[..., j] - cov[:, i, j]], axis=-1).reshape(n, -1)
     return psi.T @ psi / (n * (n - 1))
+
+
+def gaussian_statistic_covariance(cross, n_paths: int) -> np.ndarray:
+    """``Σ`` of :func:`statistic_vector` of the sample moments of ``n_paths`` Gaussian paths, exactly.
+
+    ``cross (T, T, k, k)``: ``cross[a, b, i, j] = Cov(z_i(t_a), z_j(t_b))``.  For jointly Gaussian paths
+    the sample means and the unbiased sample covariances are uncorrelated, and (Wishart moments)
+
+        Cov(m̂_i(a), m̂_j(b)) = C_ij(a, b)/n,
+        Cov(K̂_ij(a), K̂_kl(b)) = [C_ik(a, b) C_jl(a, b) + C_il(a, b) C_jk(a, b)]/(n − 1).
+    """
+    c = np.asarray(cross, np.float64)
+    t, k = c.shape[0], c.shape[-1]
+    if c.shape != (t, t, k, k):
+        raise ValueError(f"cross has shape {c.shape}; expected (T, T, k, k).")
+    i, j = np.triu_indices(k)
+    mean_part = c / n_paths
+    cov_part = (c[:, :, i[:, None], i[None, :]] * c[:, :, j[:, None], j[None, :]]) + (
+        c[:, :, i[:, None], j[None, :]] * c[:, :, j[:, None], i[None, :]]
+    )
+    cov_part = cov_part / (n_paths - 1)
+    m, q = k, len(i)
+    block = np.zeros((t, t, m + q, m + q))
+    block[:, :, :m, :m] = mean_part
+    block[:, :, m:, m:] = cov_part
+    return block.transpose(0, 2, 1, 3).reshape(t * (m + q), t * (m + q))
 
 
 def _numbers(columns: dict, name: str, row: Callable[[int], str]) -> np.ndarray:
@@ -213,6 +245,9 @@ class Observations(eqx.Module):
     names: tuple[str, ...] = eqx.field(static=True)
     n_paths: int = eqx.field(static=True)
     from_trajectories: bool = eqx.field(static=True)
+    correlations: str = eqx.field(static=True, default="paths")
+    """Where ``Σ``'s correlations come from: ``"paths"``, ``"given"``, ``"model"`` (at a fit's estimate), or
+    ``"unknown"`` (a summary's standard errors alone: ``Σ`` diagonal)."""
 
     def __check_init__(self):
         t, k = len(self.ts), len(self.names)
@@ -282,7 +317,7 @@ class Observations(eqx.Module):
         )
 
     @classmethod
-    def from_statistics(cls, ts, names, mean, cov, mean_se, cov_se, n_paths: int) -> Observations:
+    def from_statistics(cls, ts, names, mean, cov, mean_se, cov_se, n_paths: int, *, covariance=None) -> Observations:
         """Measured ``mean (T, k)``, ``cov (T, k, k)`` with standard errors, from ``n_paths`` paths.
 
         Arguments:
@@ -291,9 +326,13 @@ class Observations(eqx.Module):
             mean, cov: ``(T, k)`` and ``(T, k, k)``.
             mean_se, cov_se: their standard errors, same shapes.
             n_paths: the number of paths they were measured on.
+            covariance: the full covariance ``Σ`` of the statistic vector (:func:`statistic_labels` names its
+                entries), correlations across times included, if known; its diagonal must be the ``se²``.
 
         Returns:
-            observations with ``Σ = diag(se²)`` (correlations between the statistics unknown and ignored).
+            observations with ``Σ = covariance``, else ``Σ = diag(se²)`` with correlations ``"unknown"``: then
+            :func:`~nhsde.fit.estimate` takes the correlations from the model at its estimate where the model
+            can give them, and otherwise warns and inflates the errors by ``χ²/dof``.
         """
         ts = np.asarray(ts, np.float64)
         mean, cov, mean_se, cov_se = (np.asarray(a, np.float64) for a in (mean, cov, mean_se, cov_se))
@@ -305,14 +344,46 @@ class Observations(eqx.Module):
         if n_paths < 2:
             raise ValueError(f"n_paths={n_paths}; must be ≥ 2.")
         se = np.asarray(statistic_vector(mean_se, cov_se))
+        if covariance is not None:
+            covariance = np.asarray(covariance, np.float64)
+            if covariance.shape != (se.size, se.size) or not np.allclose(covariance, covariance.T, rtol=1e-10):
+                raise ValueError(
+                    f"covariance has shape {covariance.shape}; expected a symmetric ({se.size}, {se.size}) matrix."
+                )
+            off = np.flatnonzero(~np.isclose(np.diag(covariance), se**2, rtol=1e-6, atol=0))
+            if off.size:
+                label = statistic_labels(ts, names)[off[0]]
+                raise ValueError(
+                    f"covariance: its diagonal at {label} is {np.diag(covariance)[off[0]]:g}, but the standard "
+                    f"error given there squares to {se[off[0]] ** 2:g}."
+                )
         return cls(
             ts=ts,
             mean=mean,
             cov=cov,
-            covariance=np.diag(se**2),
+            covariance=np.diag(se**2) if covariance is None else covariance,
             names=tuple(str(n) for n in names),
             n_paths=n_paths,
             from_trajectories=False,
+            correlations="unknown" if covariance is None else "given",
+        )
+
+    def with_correlations(self, covariance, source: str = "model") -> Observations:
+        """These observations with ``Σ = D R D``: ``R`` the correlations of ``covariance``, ``D`` this ``Σ``'s
+        standard errors (so the data keep their own errors and gain correlations across times)."""
+        covariance = np.asarray(covariance, np.float64)
+        scale = np.sqrt(np.diag(covariance))
+        se = np.sqrt(np.diag(self.covariance))
+        r = covariance / np.outer(scale, scale)
+        return Observations(
+            ts=self.ts,
+            mean=self.mean,
+            cov=self.cov,
+            covariance=se[:, None] * r * se[None, :],
+            names=self.names,
+            n_paths=self.n_paths,
+            from_trajectories=self.from_trajectories,
+            correlations=source,
         )
 
     @classmethod

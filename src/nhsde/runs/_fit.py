@@ -5,7 +5,9 @@ A fit file (``format = "nhsde-fit"``) holds ``estimate``, ``se``, ``start`` and
 :func:`~nhsde.fit.estimate`) over ``parameter``, ``cov`` over ``parameter × parameter2``, the optimiser's
 ``history`` over ``step × column`` (``loss`` and the parameters), and as
 attributes the fit configuration (JSON), ``chi2``, ``dof``, ``steps``,
-``converged``, the data file with its configuration and git revision, the
+``converged``, where the correlations of the data's statistics came from (``correlations``: ``paths``, or
+``model`` for a run file without its paths; see :func:`~nhsde.fit.estimate`) and ``inflation``, the data file
+with its configuration and git revision, the
 package versions, the sources' SHA-256, the git revision and a checksum.
 
 :func:`fit_data` fits a scene to a data file (CSV or netCDF, the layouts of
@@ -130,6 +132,8 @@ def _fit(config: RunConfig) -> tuple[FitResult, xr.Dataset]:
             "steps": result.steps,
             "converged": int(result.converged),
             "observed_from_trajectories": int(observed.from_trajectories),
+            "correlations": result.correlations,
+            "inflation": result.inflation,
             "data_file": str(data_path),
             "data_config": data.attrs["config"],
             "data_git_revision": data.attrs["git_revision"],

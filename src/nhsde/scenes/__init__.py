@@ -13,6 +13,7 @@ from ._ball import (
     BallOnVibratingPlane as BallOnVibratingPlane,
     BallParameters as BallParameters,
     ball_covariances as ball_covariances,
+    ball_two_time_covariances as ball_two_time_covariances,
 )
 from ._base import (
     AbstractRollingBodyScene as AbstractRollingBodyScene,

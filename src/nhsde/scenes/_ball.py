@@ -25,7 +25,7 @@ from .._params import AbstractParameters, parameter, sqrt_intensity
 from .._system import StateLayout, StochasticSystem
 from ._base import AbstractScene
 
-__all__ = ["BallOnVibratingPlane", "BallParameters", "ball_covariances"]
+__all__ = ["BallOnVibratingPlane", "BallParameters", "ball_covariances", "ball_two_time_covariances"]
 
 
 class BallParameters(AbstractParameters):
@@ -206,3 +206,35 @@ def ball_covariances(t, eps, nu, delta):
     k_xu = g * t**2 * _phi(2 * s) ** 2 / 2
     k_xx = g * t**3 * _psi(s)
     return k_xx, k_xu, k_uu
+
+
+def ball_two_time_covariances(s, t, eps, nu, delta):
+    """Exact covariances of (3.1) per axis between times ``s ≤ t`` from a deterministic initial state.
+
+    For ``t ≥ s`` the state ``Z = (x, u)`` evolves as ``Z(t) = Φ(t − s) Z(s) + (noise after s)`` with
+    ``Φ(τ) = [[1, b], [0, e]]``, ``e = e^{−2ετ}``, ``b = (1 − e)/(2ε)``, and the noise after ``s`` is
+    independent of ``Z(s)``, so ``Cov(Z(t), Z(s)) = Φ(t − s) K(s)`` with ``K`` of :func:`ball_covariances`:
+
+        Cov(x(t), x(s)) = k_xx(s) + b k_xu(s),     Cov(x(t), u(s)) = k_xu(s) + b k_uu(s),
+        Cov(u(t), x(s)) = e k_xu(s),               Cov(u(t), u(s)) = e k_uu(s).
+
+    Arguments:
+        s, t: the earlier and the later time (broadcast; ``t ≥ s``).
+        eps, nu, delta: as for :func:`ball_covariances`.
+
+    Returns:
+        ``(c_xx, c_xu, c_ux, c_uu)``: ``Cov(x(t), x(s))``, ``Cov(x(t), u(s))``, ``Cov(u(t), x(s))``,
+        ``Cov(u(t), u(s))``; at ``s = t`` the covariances of :func:`ball_covariances`.
+
+    Examples:
+        >>> from nhsde.scenes import ball_covariances, ball_two_time_covariances
+        >>> c = ball_two_time_covariances(2.0, 2.0, 0.7, 1.3, 5 / 7)
+        >>> k = ball_covariances(2.0, 0.7, 1.3, 5 / 7)
+        >>> bool(abs(c[0] - k[0]) < 1e-15 and abs(c[1] - c[2]) < 1e-15 and abs(c[3] - k[2]) < 1e-15)
+        True
+    """
+    k_xx, k_xu, k_uu = ball_covariances(s, eps, nu, delta)
+    tau = t - s
+    e = jnp.exp(-2 * eps * tau)
+    b = tau * _phi(2 * eps * tau)
+    return k_xx + b * k_xu, k_xu + b * k_uu, e * k_xu, e * k_uu
