@@ -1,7 +1,7 @@
 """The import graph, read from the source: layers only point down, no cycle, no private name crosses a file.
 
 Layers, lowest first (a module may import from its own layer or any lower one):
-shared checks, the compilation cache → parameters, Brownian driver (and the weak scheme's increments it draws) →
+shared checks, the compilation cache, Ctrl-C → parameters, Brownian driver (and the weak scheme's increments it draws) →
 system → noise, mechanics, bodies (specs) → scenes → ensemble, options, solvers → simulate →
 statistics, analysis, work precision, sweeps, plots → fit → runs (and the CLI) → the package's top level.
 """
@@ -12,7 +12,7 @@ import pathlib
 SRC = pathlib.Path(__file__).resolve().parents[1] / "src" / "nhsde"
 
 LAYERS = [
-    {"_misc", "_compilation_cache"},
+    {"_misc", "_compilation_cache", "_interrupt"},
     {"_params", "_brownian", "_weak"},
     {"_system"},
     {"noise", "mechanics", "bodies"},
