@@ -354,7 +354,8 @@ def _lbfgs():
 class FitResult:
     """Estimates ``values`` of the parameters ``names``, their covariance and the fit's diagnostics.
 
-    ``history[i] = (loss, *values)`` at optimizer step ``i``; ``chi2`` with ``dof``
+    ``history[i] = (loss, *values)`` at optimizer step ``i`` (of both fits where the model gave the
+    correlations of a summary, which ``steps`` counts together); ``chi2`` with ``dof``
     degrees of freedom measures the misfit (``chi2 ≈ dof`` when the model fits).
     ``jacobian`` is ``G = ∂s/∂θ (S, p)`` at ``values``, ``jacobian_se`` its Monte-Carlo standard errors
     (zero for an exact model) and ``whitening`` ``W = L⁻¹`` with ``Σ_obs = L Lᵀ``;
@@ -577,7 +578,7 @@ def estimate(
         sigma = model.statistics_covariance(problem.system_at(theta), problem.ts, observed.names, observed.n_paths)
         if sigma is not None:  # the model's correlations at θ̂, the data's own errors: fit again from θ̂
             again = observed.with_correlations(sigma, "model")
-            return estimate(
+            refit = estimate(
                 system,
                 again,
                 model,
@@ -587,6 +588,8 @@ def estimate(
                 max_steps=max_steps,
                 gtol=gtol,
             )
+            history = np.concatenate([result.history, refit.history])  # both fits, in order
+            return dataclasses.replace(refit, init=theta0, history=history, steps=result.steps + refit.steps)
         inflation = max(1.0, chi2 / result.dof) if result.dof > 0 else 1.0
         warnings.warn(
             f"estimate: the observed statistics are a summary without correlations across times, and the model "
