@@ -9,7 +9,7 @@ import pytest
 
 import nhsde
 from nhsde import fit
-from nhsde.runs import main
+from nhsde.runs import main, read_data
 from nhsde.scenes import BallOnVibratingPlane, ball_covariances
 
 EPS, NU = 0.7, 1.3
@@ -177,3 +177,16 @@ def test_cli_data_errors_are_one_line(tmp_path, capsys):
     assert "--data needs --scene" in capsys.readouterr().err
     assert main(["fit"]) == 2
     assert "give --config FILE" in capsys.readouterr().err
+
+
+def test_a_netcdf_data_file_reads_as_the_dataset(data, tmp_path):
+    """``nhsde fit --data FILE.nc``: any dataset from_xarray reads (here the run-file layout of paths)."""
+    xr = pytest.importorskip("xarray")
+    _, _, observed = data
+    paths = np.random.default_rng(0).normal(size=(64, len(observed.ts), 2))  # any values in the layout
+    ds = xr.Dataset({"paths": (("path", "time", "name"), paths)}, coords={"time": observed.ts, "name": list(NAMES)})
+    ds.to_netcdf(tmp_path / "data.nc", engine="h5netcdf")
+    read = read_data(tmp_path / "data.nc", BallOnVibratingPlane().build())
+    np.testing.assert_array_equal(
+        read.statistics(), fit.Observations.from_paths(observed.ts, paths, NAMES).statistics()
+    )

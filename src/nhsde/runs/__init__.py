@@ -17,7 +17,12 @@ Nothing in nhsde imports from this package: it sits on top of everything else.
 
 from ._cli import build_parser as build_parser, main as main
 from ._config import Built as Built, ConfigError as ConfigError, RunConfig as RunConfig, load_config as load_config
-from ._fit import observations_from_run as observations_from_run, run_fit as run_fit
+from ._fit import (
+    fit_data as fit_data,
+    observations_from_run as observations_from_run,
+    read_data as read_data,
+    run_fit as run_fit,
+)
 from ._pieces import run as run
 from ._store import (
     FIT_FORMAT as FIT_FORMAT,
