@@ -150,3 +150,29 @@ def test_given_covariance_is_checked():
         fit.Observations.from_statistics(
             [1.0], ("x",), [[0.0]], [[[1.0]]], [[0.1]], [[[0.2]]], 100, covariance=np.diag([0.01, 1.0])
         )
+
+
+@pytest.mark.slow
+def test_summary_error_bars_through_a_simulated_model_are_calibrated(data_sets):
+    """As the calibration test, with the correlations from a simulated model's own paths at the estimate.
+
+    16 data sets (slow: each is fitted twice through the simulator); the bounds are those of the 32-set test
+    carried to 15 degrees of freedom at the same tail probabilities of (n − 1)s²/σ² ~ χ²(n − 1).
+    """
+    from scipy import stats
+
+    n_sets = 16
+    ts, paths = data_sets
+    start = BallOnVibratingPlane(eps=0.5, nu=1.0).build()
+    scores = []
+    for s in range(n_sets):
+        observed = fit.Observations.from_paths(ts, paths[s * N_PATHS : (s + 1) * N_PATHS], NAMES)
+        bare = fit.Observations.from_statistics(ts, NAMES, observed.mean, observed.cov, *summary_of(observed), N_PATHS)
+        model = fit.Simulated(jnp.zeros(4), jax.random.key(100 + s), n_paths=4096, steps=0.05, solver="sra1")
+        result = fit.estimate(start, bare, model)
+        assert result.converged and result.correlations == "model", str(result)
+        scores.append((result.values - np.array([EPS, NU])) / result.se)
+    tails = stats.chi2.cdf([31 * 0.8**2, 31 * 1.25**2], N_SETS - 1)
+    lo, hi = np.sqrt(stats.chi2.ppf(tails, n_sets - 1) / (n_sets - 1))
+    spread = np.std(scores, axis=0, ddof=1)
+    assert np.all((spread >= lo) & (spread <= hi)), (spread, lo, hi)
