@@ -141,6 +141,31 @@ def test_summary_without_correlations_warns_and_inflates(data_sets):
     assert exact.inflation == 1.0 and exact.correlations == "model"
 
 
+def test_a_summary_dataset_carries_its_covariance(data_sets):
+    """from_xarray reads ``covariance`` over statistic × statistic2 beside the summary's moments."""
+    xr = pytest.importorskip("xarray")
+    ts, paths = data_sets
+    observed = fit.Observations.from_paths(ts, paths[:N_PATHS], NAMES)
+    mean_se, cov_se = summary_of(observed)
+    labels = fit.statistic_labels(ts, NAMES)
+    ds = xr.Dataset(
+        {
+            "mean": (("time", "name"), observed.mean),
+            "cov": (("time", "name", "name2"), observed.cov),
+            "mean_se": (("time", "name"), mean_se),
+            "cov_se": (("time", "name", "name2"), cov_se),
+            "covariance": (("statistic", "statistic2"), observed.covariance),
+        },
+        coords={"time": ts, "name": list(NAMES), "name2": list(NAMES), "statistic": labels, "statistic2": labels},
+        attrs={"n_used": N_PATHS},
+    )
+    read = fit.Observations.from_xarray(ds)
+    assert read.correlations == "given"
+    np.testing.assert_allclose(read.covariance, observed.covariance, rtol=1e-12)
+    with pytest.raises(ValueError, match="holds the statistics' covariance of all of \('x', 'u_x'\)"):
+        fit.Observations.from_xarray(ds, names=("x",))
+
+
 def test_given_covariance_is_checked():
     with pytest.raises(ValueError, match="covariance has shape \\(3, 3\\); expected a symmetric \\(2, 2\\)"):
         fit.Observations.from_statistics(

@@ -475,8 +475,10 @@ class Observations(eqx.Module):
 
         Run-file layout (:func:`nhsde.runs.run`): ``paths`` over ``path × time × name`` (paths flagged in
         ``failed`` are dropped), or ``mean``, ``cov``, ``mean_se``, ``cov_se`` over ``time × name (× name2)``
-        with ``n_paths`` (argument, else the attribute ``n_used``).  Any other dataset is read as the table
-        ``ds.to_dataframe()`` (:meth:`from_dataframe`), e.g. variables ``x``, ``u_x`` over ``(path, t)``.
+        with ``n_paths`` (argument, else the attribute ``n_used``) and, where known, ``covariance``: the
+        statistics' full covariance over ``statistic × statistic2`` (:meth:`from_statistics`).  Any other
+        dataset is read as the table ``ds.to_dataframe()`` (:meth:`from_dataframe`), e.g. variables ``x``,
+        ``u_x`` over ``(path, t)``.
         A run file starts at its deterministic initial state: select the later times, ``ds.isel(time=slice(1, None))``.
 
         Arguments:
@@ -504,7 +506,12 @@ class Observations(eqx.Module):
             if "n_used" not in ds.attrs:
                 raise ValueError("ds: how many paths the statistics are from is unknown; give n_paths=.")
             n_paths = int(ds.attrs["n_used"])
-        return cls.from_statistics(ts, names, mean, cov, mean_se, cov_se, n_paths)
+        covariance = None
+        if "covariance" in ds:  # Σ over statistic × statistic2, of all the stored names
+            if list(names) != stored:
+                raise ValueError(f"names={names}: ds holds the statistics' covariance of all of {tuple(stored)}.")
+            covariance = ds["covariance"].values
+        return cls.from_statistics(ts, names, mean, cov, mean_se, cov_se, n_paths, covariance=covariance)
 
     def statistics(self) -> np.ndarray:
         """The observed :func:`statistic_vector`."""
