@@ -218,7 +218,8 @@ def test_bad_input_raises_naming_the_argument():
 
 def test_bad_spans_and_level_counts_are_refused_before_any_solve():
     """``t1`` not finite or not after ``t0`` is blamed on ``t1`` by every estimator; ``n_paths`` given as one count and
-    ``max_levels`` below one (two with ``rmse``) are refused naming the argument and what is allowed."""
+    ``max_levels`` below one (two with ``rmse``) are refused naming the argument and what is allowed, and path counts
+    whose per-path values would not fit in memory with their size."""
     system, key = BALL.build(), jax.random.key(0)
     target = ("cov", "x", "x")
     for t1 in (float("nan"), float("inf"), -1.0, 0.0):
@@ -238,3 +239,6 @@ def test_bad_spans_and_level_counts_are_refused_before_any_solve():
     for kwargs in (dict(n_paths=(64,), max_levels=0), dict(rmse=0.1, max_levels=1), dict(rmse=0.1, max_levels=-2)):
         with pytest.raises(ValueError, match=f"^max_levels={kwargs['max_levels']}; must be ≥ 1"):
             multilevel_monte_carlo(system, Y0, key, **base, **kwargs)
+    for call in (extrapolate, control_variate):  # per-path values beyond any memory: refused with their size
+        with pytest.raises(ValueError, match=r"^n_paths=1000000000000 keeps per-path values of .* GiB at their peak"):
+            call(system, Y0, key, n_paths=10**12, t1=1.0, dt=0.25)

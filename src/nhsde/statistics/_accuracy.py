@@ -29,8 +29,10 @@ differences.  For a target RMSE ``ε`` it predicts the work (path-steps) of
   is an upper bound where it converges faster), Euler's bias bound, and its work converted to Euler
   path-steps by the measured ratio ``κ`` of its seconds per path-step to plain Euler Monte Carlo's;
 
-runs the cheapest and returns its value, standard error and bias estimate with
-the work done, pilot included, and a report of every alternative.  With ``wrt``
+runs the cheapest whose per-path values fit in memory (``_cost.py``; none fits: a
+``ValueError`` with the size) and returns its value, standard error and bias estimate
+with the work predicted and done (path-steps, pilot included), the seconds with the
+compile time apart, and a report of every alternative.  With ``wrt``
 the chosen estimator also returns the statistic's pathwise derivatives in those
 parameters with their Monte-Carlo standard errors (per-path tangents; the target
 applies to the value, the derivatives come from the same paths).
@@ -66,6 +68,7 @@ from ._cost import (
     compile_clock,
     memory_limit,
     multilevel_plan,
+    path_bytes,
     peak_bytes,
     whole_pieces,
 )
@@ -411,7 +414,9 @@ def to_accuracy(
     - ``antithetic``: ``None`` considers both plain and antithetic paths (Wiener drivers),
       ``True``/``False`` only those.
     - ``pilot_paths``, ``pilot_levels`` (≥ 2; 3 to estimate the extrapolation's bias).
-    - ``max_path_steps``: refuse (``ValueError``) when the cheapest predicted work exceeds it.
+    - ``max_path_steps``: refuse (``ValueError``) when the cheapest predicted work exceeds it; alternatives whose
+      per-path values would not fit in the device's memory are passed over (none fits: a ``ValueError`` with the
+      size).
     - ``cost``: ``'path-steps'``, or ``'seconds'`` (path-steps times each solver's
       measured seconds per path-step from a second, compiled, pilot run).
     - ``control_variate``: consider a control variate where one is available.
@@ -537,7 +542,7 @@ def to_accuracy(
             _quasi_monte_carlo_alternative(system, y0, pilot_key, run_key, rmse, h0, steps0, euler, common)
         )
     pilot_work += sum(a.pilot_work for a in alternatives)
-    per_sample = n_save * len(names) * (1 + len(wrt)) * jnp.dtype(jnp.result_type(float)).itemsize
+    per_sample = path_bytes(n_save, len(names), len(wrt))
     alternatives = [dataclasses.replace(a, memory=peak_bytes(_kept_samples(a) * per_sample)) for a in alternatives]
     if timed:
         rates = {p.solver: p.seconds_per_path_step for p in pilots}

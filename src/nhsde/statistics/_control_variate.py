@@ -75,10 +75,11 @@ from .._ensemble import Save
 from .._misc import cast_floats, check_key, check_number, check_span, check_steps
 from .._options import AbstractSteps, Batching, FixedSteps
 from .._params import validated
-from .._simulate import MIN_PATHS, simulate
+from .._simulate import MIN_PATHS
 from .._solvers import solver_needs
 from .._system import StateLayout, StochasticSystem
 from ..noise import driver_intensity
+from ._cost import check_memory, path_bytes, peak_bytes
 from ._extrapolation import (
     Derivatives,
     Estimate,
@@ -87,6 +88,7 @@ from ._extrapolation import (
     paths_save,
     roles_of,
     safe_sqrt,
+    solve_paths,
     with_tangents,
 )
 from ._moments import GaussianClosure, integrate_moments
@@ -368,15 +370,18 @@ def control_variate(
         )
     key = check_key(key)
 
-    def run(s: StochasticSystem, start):
-        ens = simulate(
-            s, start, key, n_paths=n_paths, t0=t0, t1=t1, steps=steps, solver=solver, save=save, batching=batching
-        )
-        assert ens.paths is not None
-        return ens.paths
-
     n_save = save.n
     assert n_save is not None
+    check_memory(
+        f"n_paths={n_paths}",
+        peak_bytes(2 * n_paths * path_bytes(n_save, len(names), len(wrt))),
+        "take fewer paths, or average runs of several keys.",
+    )
+
+    def run(s: StochasticSystem, start):
+        options = dict(t0=t0, t1=t1, steps=steps, solver=solver, save=save, batching=batching)
+        return solve_paths(s, start, key, first_path=0, n_paths=n_paths, **options)
+
     n_ode = (n_save - 1) * math.ceil(max(4 * n_steps, _ODE_STEPS) / (n_save - 1))
 
     def exact(s: StochasticSystem):

@@ -24,6 +24,7 @@ from collections.abc import Callable, Sequence
 
 import jax
 import jax.monitoring
+import jax.numpy as jnp
 
 from .._brownian import BLOCK
 
@@ -35,6 +36,7 @@ __all__ = [
     "check_memory",
     "compile_clock",
     "memory_limit",
+    "path_bytes",
     "peak_bytes",
     "level_cost",
     "level_piece",
@@ -173,6 +175,12 @@ def memory_limit() -> int:
     except OSError:
         group = ""
     return min(limit, int(group)) if group.isdigit() else limit
+
+
+def path_bytes(n_save: int, n_names: int, n_wrt: int) -> int:
+    """Bytes of one solve's per-path values: ``n_save × k`` numbers, and as many per parameter of ``wrt``, in the
+    default float precision."""
+    return n_save * n_names * (1 + n_wrt) * jnp.dtype(jnp.result_type(float)).itemsize
 
 
 def peak_bytes(kept: float) -> float:

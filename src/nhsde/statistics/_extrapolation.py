@@ -16,9 +16,11 @@ Statistics of paired paths (:func:`paired_moments`).  Sets ``Z_a`` of per-path
 values on the same paths and weights ``w_a`` give ``Σ_a w_a mean(Z_a)`` and
 ``Σ_a w_a cov(Z_a)``; the standard error of the first is that of the per-path
 values ``Σ_a w_a Z_a``, of the second that of the per-path products
-``ψ = Σ_a w_a (Z_a − m_a)(Z_a − m_a)ᵀ`` (the delta method: the error of the
-centring means is of higher order), ``Var ψ_ij = E ψ_ij² − (E ψ_ij)²`` with
-``E ψ_ij² = Σ_{a,b} w_a w_b E[(F_a,i F_b,i)(F_a,j F_b,j)]``, ``F = Z − m``.
+``ψ = Σ_a w_a (Z_a − m_a)(Z_a − m_a)ᵀ``, ``Var ψ_ij = E ψ_ij² − (E ψ_ij)²`` with
+``E ψ_ij² = Σ_{a,b} w_a w_b E[(F_a,i F_b,i)(F_a,j F_b,j)]``, ``F = Z − m``, plus the
+centring term ``Σ_{a,b} w_a w_b (C^{ab}_ii C^{ab}_jj + C^{ab}_ij C^{ab}_ji)/(n(n − 1))``
+of the cross-covariances ``C^{ab}`` (exact for unbiased sample covariances; for one
+set ``simulate``'s ``covariance_variance``), never zero for a non-degenerate sample.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ from .._simulate import simulate
 from .._solvers import solver_needs
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
+from ._cost import check_memory, path_bytes, peak_bytes
 from ._sensitivities import check_wrt
 from ._variance_reduction import antithetic as reflected
 
@@ -102,14 +105,20 @@ def paired_moments(paths: Sequence[Array], weights: Sequence[float]):
     mean_var = jnp.var(combined, axis=0, ddof=1) / n
     centred = [z - jnp.mean(z, axis=0) for z in paths]
     cov = jnp.zeros(mean.shape + mean.shape[-1:], mean.dtype)
-    second = jnp.zeros_like(cov)
+    second, pair = jnp.zeros_like(cov), jnp.zeros_like(cov)
     for w, f in zip(weights, centred, strict=True):
         cov = cov + w * jnp.einsum("pni,pnj->nij", f, f) / (n - 1)
     for wa, fa in zip(weights, centred, strict=True):
         for wb, fb in zip(weights, centred, strict=True):
             prod = fa * fb
             second = second + wa * wb * jnp.einsum("pni,pnj->nij", prod, prod) / n
-    cov_var = (second - cov**2) / n  # MomentSums' convention: fourth moment about the means, unbiased cov
+            cross = jnp.einsum("pni,pnj->nij", fa, fb) / n  # C^{ab}_ij = cov(Z_a,i, Z_b,j), central
+            diag = jnp.diagonal(cross, axis1=-2, axis2=-1)
+            pair = pair + wa * wb * (diag[..., :, None] * diag[..., None, :] + cross * jnp.swapaxes(cross, -1, -2))
+    # covariance_variance (simulate's) for the combination: (m₂₂ − m²)/n + Σ_ab w_a w_b (C^ab_ii C^ab_jj +
+    # C^ab_ij C^ab_ji)/(n(n − 1)), the exact covariance of unbiased sample covariances, with central moments
+    m = cov * (n - 1) / n
+    cov_var = jnp.maximum(second - m**2, 0.0) / n + pair / (n * (n - 1))
     return mean, cov, mean_var, cov_var
 
 
@@ -192,6 +201,17 @@ def key_segments(key, first_path: int, n_paths: int):
         first_path, n_paths = first_path + size, n_paths - size
 
 
+def solve_paths(system: StochasticSystem, y0, key, *, first_path: int, n_paths: int, **options) -> Array:
+    """Per-path saved values of paths ``first_path … first_path + n_paths − 1`` (:data:`KEY_PATHS` per key) by
+    :func:`~nhsde.simulate` with ``options`` (whose ``save`` keeps the paths)."""
+    parts = []
+    for k, first, size in key_segments(key, first_path, n_paths):
+        ens = simulate(system, y0, k, n_paths=size, first_path=first, **options)
+        assert ens.paths is not None
+        parts.append(ens.paths)
+    return parts[0] if len(parts) == 1 else jnp.concatenate(parts)
+
+
 def coupled_paths(
     system: StochasticSystem,
     y0,
@@ -219,24 +239,19 @@ def coupled_paths(
         for dt in dts:
 
             def per_path(solved: StochasticSystem, dt=dt):
-                parts = []
-                for k, first, size in key_segments(key, first_path, n_paths):
-                    ens = simulate(
-                        solved,
-                        y0,
-                        k,
-                        n_paths=size,
-                        t0=t0,
-                        t1=t1,
-                        steps=FixedSteps(dt, brownian_dt=brownian_dt),
-                        solver=solver,
-                        save=save,
-                        batching=batching,
-                        first_path=first,
-                    )
-                    assert ens.paths is not None
-                    parts.append(ens.paths)
-                return parts[0] if len(parts) == 1 else jnp.concatenate(parts)
+                return solve_paths(
+                    solved,
+                    y0,
+                    key,
+                    first_path=first_path,
+                    n_paths=n_paths,
+                    t0=t0,
+                    t1=t1,
+                    steps=FixedSteps(dt, brownian_dt=brownian_dt),
+                    solver=solver,
+                    save=save,
+                    batching=batching,
+                )
 
             z, t = with_tangents(per_path, s, wrt)
             out.append(z)
@@ -289,7 +304,14 @@ def extrapolate(
     t0, t1 = check_span(t0, t1)
     n_steps = check_steps("dt", t1 - t0, h)
     save = paths_save(save, n_steps, system.layout.names)
-    assert save.names is not None
+    assert save.names is not None and save.n is not None
+    n_paths = check_number("n_paths", n_paths, integer=True)
+    solves = 4 if antithetic else 2
+    check_memory(
+        f"n_paths={n_paths}",
+        peak_bytes(solves * n_paths * path_bytes(save.n, len(save.names), len(wrt))),
+        "take fewer paths, or average runs of several keys.",
+    )
     paths, tangents = coupled_paths(
         system,
         y0,

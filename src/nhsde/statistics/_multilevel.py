@@ -23,12 +23,14 @@ so that the Monte-Carlo variance is ``ε²/2``; levels are added (Giles (2015),
 Algorithm 1) until the bias estimate ``max(|Ŷ_L|, |Ŷ_{L−1}|/2^α)/(2^α − 1)`` of a
 scheme of weak order ``α`` is below ``ε/√2``.  Level ``ℓ`` draws paths
 ``0, 1, …`` of the key ``fold_in(key, ℓ)`` (the counter-based driver makes path
-``i`` the same in any run), in runs of ``P_ℓ 2^j`` paths (``P_ℓ = piece_paths``
-halved per level, at least 64): the samples of ``N_ℓ`` depend on ``(key, ℓ, N_ℓ)``
-only, and a few compiled programs per level serve every run.  With the
-allocation fixed (``n_paths=result.n_paths_per_level``) the estimator is a
-differentiable function of the system's parameters (``jax.jacfwd``, ``jax.grad``).
-Three-point increments are refused: their sums are not three-point.
+``i`` the same in any run; beyond ``2^30`` paths, of keys folded from it), in
+runs of ``P_ℓ 2^j`` paths (``P_ℓ = piece_paths`` halved per level, at least 64):
+the samples of ``N_ℓ`` depend on ``(key, ℓ, N_ℓ)`` only, and a few compiled
+programs per level serve every run.  With the allocation fixed
+(``n_paths=result.n_paths_per_level``) the estimator is a differentiable function
+of the system's parameters (``jax.jacfwd``, ``jax.grad``).
+Three-point increments are refused: their sums are not three-point.  Counts whose
+per-path values would not fit in memory are refused, with their size, before they run.
 """
 
 from __future__ import annotations
@@ -48,7 +50,7 @@ from .._options import AbstractSteps, Batching, FixedSteps
 from .._solvers import solver_needs
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
-from ._cost import MAX_LEVELS, allocate, check_memory, level_cost, level_piece, peak_bytes
+from ._cost import MAX_LEVELS, allocate, check_memory, level_cost, level_piece, path_bytes, peak_bytes
 from ._extrapolation import (
     Estimate,
     coupled_paths,
@@ -133,7 +135,7 @@ class _Levels:
     def check_memory(self, counts: Sequence[int], name: str, fix: str) -> None:
         """Refuse (naming ``name``) counts per level whose per-path values would not fit in memory."""
         save, wrt = self.opts["save"], self.opts["wrt"]
-        per_sample = save.n * len(save.names) * (1 + len(wrt)) * jnp.dtype(jnp.result_type(float)).itemsize
+        per_sample = path_bytes(save.n, len(save.names), len(wrt))
         sets = sum(n * (2 if level else 1) * (2 if self.antithetic else 1) for level, n in enumerate(counts))
         check_memory(name, peak_bytes(sets * per_sample), fix)
 
