@@ -443,8 +443,21 @@ def test_fuzz_messages_come_first(entry, transform):
     tally.check(("message not first",))
 
 
+UNNAMED = pytest.mark.xfail(
+    strict=True,
+    reason="a huge radius (2.7e5 on the rolling disk, 3.4e15 on the ball from its Lagrangian) makes the mass matrix "
+    "ill-conditioned; the refusal ('mass matrix ... is singular or indefinite') names no parameter",
+)
+THOROUGH_CASES = [
+    pytest.param(
+        *case.values, id=case.id, marks=[*case.marks, *([UNNAMED] if case.id == "scene parameters-plain" else [])]
+    )
+    for case in MESSAGE_CASES
+]
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("entry, transform", MESSAGE_CASES)
+@pytest.mark.parametrize("entry, transform", THOROUGH_CASES)
 def test_fuzz_thoroughly(entry, transform):
     tally = fuzz(entry, transform, thorough=True)
     tally.check()
