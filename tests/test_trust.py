@@ -58,7 +58,9 @@ def test_one_unstable_point_under_vmap_names_the_stability_limit():
 
 def test_stationary_variance_off_by_more_than_ten_percent_warns_with_the_factor_and_the_step():
     """Euler on u̇ = −2εu + noise: stationary variance factor 1/(1 − εh) (S0 (3.1), KP §9.8); εh = 1/2 gives 2."""
-    with pytest.warns(UserWarning, match=r"stationary variance 2× the exact one .* dt ≤ 0.0125 brings it within"):
+    with pytest.warns(
+        nhsde.StationaryVarianceWarning, match=r"stationary variance 2× the exact one .* dt ≤ 0.0125 brings it within"
+    ):
         k_xx(5.0)
     # 1/(1 − εh) ≤ 1.1 needs εh ≤ 1/11: dt = 0.1/8 is the first halving under it (εh = 0.0625: 1.067)
     with warnings.catch_warnings():

@@ -26,6 +26,7 @@ from ._ensemble import (
     Save as Save,
     SimulationError as SimulationError,
     SimulationResult as SimulationResult,
+    StationaryVarianceWarning as StationaryVarianceWarning,
 )
 from ._options import (
     AdaptiveSteps as AdaptiveSteps,

@@ -22,7 +22,16 @@ from jaxtyping import Array, Bool, Float, Int
 from ._brownian import BLOCK
 from ._misc import check_number, is_concrete
 
-__all__ = ["AbstractMoments", "Ensemble", "MomentSums", "Save", "SimulationError", "SimulationResult", "check_result"]
+__all__ = [
+    "AbstractMoments",
+    "Ensemble",
+    "MomentSums",
+    "Save",
+    "SimulationError",
+    "SimulationResult",
+    "StationaryVarianceWarning",
+    "check_result",
+]
 
 MIN_PATHS = 4
 """Fewest paths a run may have: a covariance and the standard error of its estimate need four."""
@@ -30,6 +39,10 @@ MIN_PATHS = 4
 
 class SimulationError(RuntimeError):
     """Paths failed (non-finite state or a solver error code) and ``on_failure='raise'``."""
+
+
+class StationaryVarianceWarning(UserWarning):
+    """The solver's stationary variance on the declared linear friction is off by more than 10 % at this step."""
 
 
 class SimulationResult(eqx.Enumeration):

@@ -34,7 +34,16 @@ import jax.random as jr
 import numpy as np
 
 from ._brownian import BLOCK, StepIncrement, block_keys
-from ._ensemble import MIN_PATHS, Ensemble, MomentSums, Save, SimulationResult, check_result, failure_result
+from ._ensemble import (
+    MIN_PATHS,
+    Ensemble,
+    MomentSums,
+    Save,
+    SimulationResult,
+    StationaryVarianceWarning,
+    check_result,
+    failure_result,
+)
 from ._interrupt import POLL_STEPS, poll, watching
 from ._misc import cast_floats, check_key, check_number, check_steps, is_concrete, under_trace
 from ._options import AbstractSteps, AdaptiveSteps, Batching, FixedSteps
@@ -43,7 +52,7 @@ from ._solvers import SOLVERS, ExponentialEuler, SolverNeeds, solver_needs
 from ._system import StochasticSystem
 from ._weak import WeakIncrement
 
-__all__ = ["MAX_PATH_INDEX", "MIN_PATHS", "simulate"]
+__all__ = ["MAX_PATH_INDEX", "MIN_PATHS", "simulate", "stable_step"]
 
 MAX_PATH_INDEX = 2**31 - 1
 """Paths ``0 … MAX_PATH_INDEX − 1`` of a key have distinct noise (path indices are 32-bit integers)."""
@@ -395,7 +404,20 @@ def _check_linear_stability(system: StochasticSystem, needs: SolverNeeds, dt: fl
                 f"flow damps it); {fix}"
             )
         if abs(float(off) - 1) > 0.1:
-            warnings.warn(_variance_message(system, needs, dt, float(off), work), stacklevel=3)
+            warnings.warn(
+                _variance_message(system, needs, dt, float(off), work), StationaryVarianceWarning, stacklevel=3
+            )
+
+
+def stable_step(system: StochasticSystem, solver: str | dfx.AbstractSolver, dt: float) -> bool:
+    """Whether ``solver`` damps every mode of the declared linear drift that the exact flow damps, at step ``dt``
+    (strictly inside its stability limit); ``True`` where no linear drift is declared or the parameters are traced."""
+    needs = solver_needs(solver, system)
+    if not _checks_linear(system, needs) or not is_concrete(system.params):
+        return True
+    work = jnp.result_type(float)  # float64 where enabled
+    with jax.ensure_compile_time_eval() if under_trace() else contextlib.nullcontext():
+        return not bool(_linear_modes(system, needs, system.params, jnp.asarray(dt, work))[0])
 
 
 def _variance_message(system: StochasticSystem, needs: SolverNeeds, dt: float, off: float, work) -> str:
@@ -430,6 +452,7 @@ def _warn_variance(off, solver: str, dt: float) -> None:
         warnings.warn(
             f"dt={dt}: solver {solver!r} has a stationary variance {worst:.3g}× the exact one on this system's "
             "linear friction (off by more than 10 %); take dt smaller (the warning called plainly names the step).",
+            StationaryVarianceWarning,
             stacklevel=2,
         )
 

@@ -43,6 +43,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -53,10 +54,10 @@ import jax.random as jr
 import numpy as np
 
 from .._brownian import BLOCK
-from .._ensemble import Save
+from .._ensemble import Save, StationaryVarianceWarning
 from .._misc import check_key, check_number, check_span, check_steps, is_concrete
 from .._options import AbstractSteps, Batching, FixedSteps
-from .._simulate import MAX_PATH_INDEX, simulate
+from .._simulate import MAX_PATH_INDEX, simulate, stable_step
 from .._solvers import solver_needs
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
@@ -261,7 +262,7 @@ def _pick(kind, i, j, moments):
 @dataclasses.dataclass(frozen=True)
 class _Candidate:
     label: str
-    solver: object
+    solver: str | dfx.AbstractSolver
     order: int
 
 
@@ -407,7 +408,8 @@ def to_accuracy(
       must be saved (``save.names``, default the statistic's names, of the system's observables).
     - ``rmse``: the absolute target, or ``relative_rmse``: relative to the pilot's ``|value|``.
     - ``dt`` (or ``steps=FixedSteps(dt)``): the coarsest step ``h₀`` considered (default
-      ``(t1 − t0)/4``); pilots run at ``h₀ … h₀ 2^{1−pilot_levels}``, every alternative at ``h₀`` or finer.
+      ``(t1 − t0)/4``, halved until every solver considered is inside its stability limit on the
+      system's declared friction); pilots run at ``h₀ … h₀ 2^{1−pilot_levels}``, every alternative at ``h₀`` or finer.
     - ``solver``: consider only this one (``PlatenWeak2`` needs ``increments='gaussian'``),
       of weak order ``weak_order`` (default 2 for ``PlatenWeak2``, else 1); default: Euler–Maruyama
       and ``PlatenWeak2(increments='gaussian')``, those the system's driver allows.
@@ -447,7 +449,12 @@ def to_accuracy(
             )
         dt = steps.dt
     t0, t1 = check_span(t0, t1)
-    h0 = check_number("dt", (t1 - t0) / 4 if dt is None else dt, positive=True)
+    candidates, skipped = _candidates(system, solver, weak_order)
+    if dt is None:  # the coarsest step: (t1 − t0)/4, halved until every candidate damps the declared friction
+        dt = (t1 - t0) / 4
+        while not all(stable_step(system, c.solver, dt) for c in candidates) and dt > (t1 - t0) / 2**30:
+            dt /= 2
+    h0 = check_number("dt", dt, positive=True)
     steps0 = check_steps("dt", t1 - t0, h0)
     if save is not None and not isinstance(save, Save):
         raise TypeError(f"save={save!r}; expected nhsde.Save(...).")
@@ -481,7 +488,6 @@ def to_accuracy(
         raise TypeError("to_accuracy chooses path counts from a pilot: it needs concrete parameters, not traced ones.")
     key = check_key(key)
     pilot_key, run_key = jr.split(key)
-    candidates, skipped = _candidates(system, solver, weak_order)
     use_anti = system.noise.continuous and antithetic is not False
     timed = cost == "seconds"
 
@@ -845,11 +851,13 @@ def _quasi_monte_carlo_alternative(
     # cost='seconds' every Euler alternative's seconds are its Euler path-steps times the Euler pilot's rate (the
     # coupled pilot's kernel, cheaper per path-step than simulate's), so QMC's must be too, via its path-steps × κ
     plain: dict[str, Any] = dict(n_paths=n_q, dt=h_b, solver="euler", save=save, **opts)
-    jax.block_until_ready(simulate(system, y0, jr.fold_in(key, 2), **plain).cov)
-    start = time.perf_counter()
-    for r in range(r_pilot):
-        jax.block_until_ready(simulate(system, y0, jr.fold_in(key, 3 + r), **plain).cov)
-    euler_rate = (time.perf_counter() - start) / path_steps
+    with warnings.catch_warnings():  # the reference step is the pilot's: its bias is measured, not warned of
+        warnings.simplefilter("ignore", StationaryVarianceWarning)
+        jax.block_until_ready(simulate(system, y0, jr.fold_in(key, 2), **plain).cov)
+        start = time.perf_counter()
+        for r in range(r_pilot):
+            jax.block_until_ready(simulate(system, y0, jr.fold_in(key, 3 + r), **plain).cov)
+        euler_rate = (time.perf_counter() - start) / path_steps
     reference_work = float((1 + r_pilot) * n_q * steps_b)
     kappa = rate / euler_rate if euler_rate > 0 else math.nan
     work = 2 * path_steps + reference_work

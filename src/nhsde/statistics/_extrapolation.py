@@ -26,6 +26,7 @@ set ``simulate``'s ``covariance_variance``), never zero for a non-degenerate sam
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -34,7 +35,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
-from .._ensemble import AbstractMoments, Save
+from .._ensemble import AbstractMoments, Save, StationaryVarianceWarning
 from .._misc import check_number, check_span, check_steps
 from .._options import Batching, FixedSteps
 from .._simulate import simulate
@@ -206,7 +207,9 @@ def solve_paths(system: StochasticSystem, y0, key, *, first_path: int, n_paths: 
     :func:`~nhsde.simulate` with ``options`` (whose ``save`` keeps the paths)."""
     parts = []
     for k, first, size in key_segments(key, first_path, n_paths):
-        ens = simulate(system, y0, k, n_paths=size, first_path=first, **options)
+        with warnings.catch_warnings():  # coarse steps are the estimators' own: their bias is measured and priced
+            warnings.simplefilter("ignore", StationaryVarianceWarning)
+            ens = simulate(system, y0, k, n_paths=size, first_path=first, **options)
         assert ens.paths is not None
         parts.append(ens.paths)
     return parts[0] if len(parts) == 1 else jnp.concatenate(parts)
