@@ -184,3 +184,14 @@ def test_cli_run_where_every_path_overflows_prints_one_line(tmp_path):
         "nhsde simulate: fewer than 4 paths succeeded; statistics and their standard errors need ≥ 4: try a smaller "
         "dt or a stiffer-stable solver."
     ]
+
+
+@pytest.mark.parametrize("solver, factor", [("euler", 2.0), ("heun2", 2 / 3)])
+def test_the_warned_variance_factor_is_what_the_solver_delivers(solver, factor):
+    """At εh = 1/2 on the ball: Euler–Maruyama's stationary k_uu is 1/(1 − εh) = 2 times the exact one, weak order 2's
+    (1 + λh/2)²h / (1 − R²) · 2|λ| = 2/3 (R = 1 + λh + (λh)²/2, λh = −1); simulated, within 4 standard errors."""
+    scene = BallOnVibratingPlane(eps=10.0, nu=1.0, drift=False)
+    with pytest.warns(nhsde.StationaryVarianceWarning, match=rf"stationary variance {factor:.3g}× the exact one"):
+        ens = nhsde.simulate(scene.build(), scene.initial_state(), KEY, n_paths=4096, t1=1.0, dt=0.05, solver=solver)
+    exact = float(nhsde.scenes.ball_covariances(1.0, 10.0, 1.0, 5 / 7)[2])  # k_uu at 2εt = 20: stationary
+    assert abs(float(ens.cov[-1, 0, 0]) - factor * exact) < 4 * float(ens.cov_se[-1, 0, 0])

@@ -354,12 +354,14 @@ def _linear_modes(system: StochasticSystem, needs: SolverNeeds, params, dt):
     lams = jnp.linalg.eigvals(a)
     zero = jnp.zeros((2,), dt.dtype)
 
+    unit = jnp.eye(2, dtype=dt.dtype)
+
     def one(lam):
-        propagator = jax.vmap(lambda e: _mode_step(needs, lam, dt, e, zero, zero), out_axes=1)(
-            jnp.eye(2, dtype=dt.dtype)
-        )
+        propagator = jax.vmap(lambda e: _mode_step(needs, lam, dt, e, zero, zero), out_axes=1)(unit)
         gain = jnp.sqrt(jnp.abs(jnp.linalg.det(propagator)))  # R(λh)·rotation: |det| = |R|²
-        jw, jh = jax.jacfwd(lambda w, h: _mode_step(needs, lam, dt, zero, w, h), argnums=(0, 1))(zero, zero)
+        # from a zero state the step is linear in the increments: its columns are the steps from unit increments
+        jw = jax.vmap(lambda w: _mode_step(needs, lam, dt, zero, w, zero))(unit)
+        jh = jax.vmap(lambda h: _mode_step(needs, lam, dt, zero, zero, h))(unit)
         added = (dt * jnp.sum(jw**2) + dt / 12 * jnp.sum(jh**2)) / 2  # W ~ N(0, h), H ~ N(0, h/12) per channel
         x = jnp.real(lam).astype(dt.dtype)
         factor = added / jnp.maximum(1 - gain**2, jnp.finfo(dt.dtype).tiny) * 2 * jnp.abs(x)
