@@ -694,6 +694,9 @@ def main(argv=None) -> int:
     on stderr.  JAX's persistent compilation cache is on, in ``~/.cache/nhsde/jax``
     (:func:`~nhsde.enable_compilation_cache`; ``NHSDE_COMPILATION_CACHE`` moves it or, ``off``, turns it off).
     """
+    import equinox as eqx
+    import jax
+
     from .._ensemble import SimulationError
 
     args = build_parser().parse_args(argv)
@@ -704,12 +707,17 @@ def main(argv=None) -> int:
         with (
             _current_directory_on_path(),
             processes(args),
+            watching(),  # Ctrl-C stops a compiled run within seconds
         ):  # jax.distributed from the flags or NHSDE_* variables; none: one process
             return command(args)
     except ValueError as e:  # ConfigError, and what simulate refuses
         message, status = str(e), 2
     except (SimulationError, FloatingPointError, OSError) as e:
         message, status = str(e), 1
+    except (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError) as e:  # a check inside a transformed computation
+        message, status = _runtime_message(e), 1
+    except KeyboardInterrupt:
+        message, status = "interrupted; a run file keeps the pieces written (the same command resumes it)", 130
     print(f"nhsde {args.command}: {' '.join(message.split())}", file=sys.stderr)
     return status
 
