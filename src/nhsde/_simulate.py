@@ -133,13 +133,25 @@ def _fixed_chunk(system, params, needs: SolverNeeds, plan: _Plan, y0, key, first
 
         def body(state, _):
             y, ok, k = state
-            jax.lax.cond(k % POLL_STEPS == 0, lambda: jax.debug.callback(poll), lambda: None)  # Ctrl-C
             y1, good = step(y, y_start, ok, k, keys, blocks)
             return (y1, ok & good, k + 1), None
 
+        def steps(state, count):
+            return jax.lax.scan(body, state, None, length=count)[0]
+
+        def polled(state, _):  # Ctrl-C: the host is asked once per POLL_STEPS steps, outside the step loop
+            jax.debug.callback(poll)
+            return steps(state, POLL_STEPS), None
+
         # the step counter rides in the carry: no per-step arrays, memory independent of steps
-        start = (j * per_save).astype(jnp.int32)
-        (y, ok, _), _ = jax.lax.scan(body, (y, ok, start), None, length=per_save)
+        state = (y, ok, (j * per_save).astype(jnp.int32))
+        groups, rest = divmod(per_save, POLL_STEPS)
+        if groups:
+            state = jax.lax.scan(polled, state, None, length=groups)[0]
+        if rest:
+            jax.debug.callback(poll)
+            state = steps(state, rest)
+        y, ok, _ = state
         done = chunk_index * plan.intervals + j + 1
         meter_state = meter.step(meter_state, jnp.asarray(done, dtype) / total_ticks)
         return (y, ok, meter_state), observe(t0 + ((j + 1) * per_save).astype(dtype) * dt, y, params)
