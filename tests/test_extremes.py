@@ -159,4 +159,6 @@ def test_long_horizon_bounded_memory(dtype):
 
         return jax.jit(run).lower(y0).compile().memory_analysis().temp_size_in_bytes
 
-    assert temp_bytes(1_000_000) == temp_bytes(10_000)
+    # both poll for Ctrl-C in groups of 1024 steps (10⁴ and 10⁵ steps per save interval); a run with fewer steps
+    # per interval than a group has no group loop at all, a constant 416 bytes less, not a growth with the steps
+    assert temp_bytes(1_000_000) == temp_bytes(100_000)

@@ -228,13 +228,25 @@ class MomentSums(eqx.Module):
         return self.add_blocks(self.block_sums(obs, valid))
 
     def statistics(self):
-        """``(mean, cov, mean_se, cov_se)``: sample mean, unbiased covariance and their Monte-Carlo errors."""
-        nf = self.count.astype(self.s1.dtype)
-        mean = self.shift + self.s1 / nf
-        cov = (self.s2 - jnp.einsum("ni,nj->nij", self.s1, self.s1) / nf) / jnp.maximum(nf - 1, 1)
-        mean_se = _safe_sqrt(jnp.diagonal(cov, axis1=1, axis2=2) / nf)
-        fourth = _central_product_moment(self.s1 / nf, self.s2 / nf, self.s3 / nf, self.s4 / nf)
-        return mean, cov, mean_se, _safe_sqrt(covariance_variance(cov, fourth, nf))
+        """``(mean, cov, mean_se, cov_se)``: sample mean, unbiased covariance and their Monte-Carlo errors.
+
+        One compiled program for every caller (``simulate`` on one device or many, run files piece by piece),
+        so the statistics of the same sums round the same wherever they are taken (on one local device: sums
+        spread over devices would compile another program, which may round differently).
+        """
+        sums = jax.device_put(self, jax.local_devices()[0]) if is_concrete(self) else self
+        return _statistics(sums)
+
+
+@eqx.filter_jit
+def _statistics(sums: MomentSums):
+    """:meth:`MomentSums.statistics`, compiled."""
+    nf = sums.count.astype(sums.s1.dtype)
+    mean = sums.shift + sums.s1 / nf
+    cov = (sums.s2 - jnp.einsum("ni,nj->nij", sums.s1, sums.s1) / nf) / jnp.maximum(nf - 1, 1)
+    mean_se = _safe_sqrt(jnp.diagonal(cov, axis1=1, axis2=2) / nf)
+    fourth = _central_product_moment(sums.s1 / nf, sums.s2 / nf, sums.s3 / nf, sums.s4 / nf)
+    return mean, cov, mean_se, _safe_sqrt(covariance_variance(cov, fourth, nf))
 
 
 def covariance_variance(cov, fourth, n):

@@ -144,14 +144,12 @@ def _fixed_chunk(system, params, needs: SolverNeeds, plan: _Plan, y0, key, first
             return steps(state, POLL_STEPS), None
 
         # the step counter rides in the carry: no per-step arrays, memory independent of steps
+        # (both loops always, an empty one included: the program's shape and memory do not depend on the steps)
         state = (y, ok, (j * per_save).astype(jnp.int32))
         groups, rest = divmod(per_save, POLL_STEPS)
-        if groups:
-            state = jax.lax.scan(polled, state, None, length=groups)[0]
-        if rest:
-            jax.debug.callback(poll)
-            state = steps(state, rest)
-        y, ok, _ = state
+        state = jax.lax.scan(polled, state, None, length=groups)[0]
+        jax.debug.callback(poll)
+        y, ok, _ = steps(state, rest)
         done = chunk_index * plan.intervals + j + 1
         meter_state = meter.step(meter_state, jnp.asarray(done, dtype) / total_ticks)
         return (y, ok, meter_state), observe(t0 + ((j + 1) * per_save).astype(dtype) * dt, y, params)
@@ -307,8 +305,7 @@ def _run(system: StochasticSystem, needs: SolverNeeds, y0, key, first_path, abou
         failed = bad_all.reshape(-1)[: plan.n_paths]  # pyright: ignore[reportPossiblyUnbound]
         paths = obs_all.reshape(total, plan.n_save, -1)[: plan.n_paths]  # pyright: ignore[reportPossiblyUnbound]
     ts = jnp.linspace(plan.t0, plan.t1, plan.n_save, dtype=y0.dtype)
-    moments = sums.statistics()
-    unstable = False
+    unstable = jnp.asarray(False)
     if plan.traced_stability:  # traced parameters: the stability limit is checked here, with the eager check's cause
         work = _work_dtype(y0.dtype)
         step = jnp.asarray((plan.t1 - plan.t0) / plan.n_steps, work)
@@ -316,14 +313,26 @@ def _run(system: StochasticSystem, needs: SolverNeeds, y0, key, first_path, abou
         jax.debug.callback(
             functools.partial(_warn_variance, solver=needs.name, dt=(plan.t1 - plan.t0) / plan.n_steps), off
         )
-    result = failure_result(
+    return ts, sums, failures, failed, paths, unstable
+
+
+def _on_one_device(x):
+    """``x`` on this process's first device (the replicated value of an array spread over processes)."""
+    if isinstance(x, jax.Array) and not x.is_fully_addressable:
+        x = x.addressable_data(0)
+    return jax.device_put(x, jax.local_devices()[0])
+
+
+@eqx.filter_jit
+def _result(moments, n_used, n_failed, unstable, raise_on_failure: bool):
+    """The run's :class:`~nhsde.SimulationResult` from its moments and counts (one small program)."""
+    return failure_result(
         unstable=unstable,
-        n_failed=failures[0],
-        n_used=sums.count,
-        raise_on_failure=plan.raise_on_failure,
+        n_failed=n_failed,
+        n_used=n_used,
+        raise_on_failure=raise_on_failure,
         overflow=~jnp.all(jnp.array([jnp.all(jnp.isfinite(m)) for m in moments])),
     )
-    return ts, sums, moments, failures, failed, paths, result
 
 
 def _zero_increment(levy_area: type, dt, w, h):
@@ -659,9 +668,13 @@ def simulate(
             f"progress_meter={meter!r}; expected a diffrax progress meter, e.g. diffrax.TqdmProgressMeter()."
         )
     with watching():  # Ctrl-C stops the compiled run within POLL_STEPS steps
-        ts, sums, moments, (n_failed, first_failed), failed, paths, result = _run(
+        ts, sums, (n_failed, first_failed), failed, paths, unstable = _run(
             system, needs, y0, key, jnp.asarray(first_path), about, plan, meter
         )
+        if is_concrete(sums, n_failed, unstable):  # one program for the statistics whatever devices ran the paths
+            sums, n_failed, unstable = jax.tree_util.tree_map(_on_one_device, (sums, n_failed, unstable))
+        moments = sums.statistics()
+        result = _result(moments, sums.count, n_failed, unstable, plan.raise_on_failure)
         if not under_trace():
             jax.block_until_ready(moments)
     details = ""
