@@ -5,7 +5,7 @@ import json
 import subprocess
 import sys
 
-COUNT = r"""
+PRELUDE = r"""
 import json, logging, jax
 compiled = []
 class Count(logging.Handler):
@@ -18,6 +18,10 @@ jax.config.update("jax_log_compiles", True)
 import nhsde
 scene = nhsde.scenes.ChaplyginSleigh(drift=False)
 system, y0, key = scene.build(), scene.initial_state(), jax.random.key(0)
+del compiled[:]  # the scene and the key are the user's
+"""
+
+COUNT = PRELUDE + r"""
 counts = {}
 for label, n_paths, dt in [("first", 256, 1 / 16), ("n_paths", 512, 1 / 16), ("dt", 512, 1 / 32)]:
     del compiled[:]
@@ -27,11 +31,47 @@ print(json.dumps(counts))
 """
 
 
+def counted(script: str):
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=900)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
 def test_simulate_compiles_few_programs():
     """On the sleigh: the first simulate compiles ≤ 8 programs (57 when the glue around the solve ran op by op),
-    a new path count or step ≤ 1."""
-    out = subprocess.run([sys.executable, "-c", COUNT], capture_output=True, text=True, timeout=600)
-    counts = json.loads(out.stdout.strip().splitlines()[-1])
+    a new path count ≤ 1 (a new chunk shape), a new step none (the step count and the step are data)."""
+    counts = counted(COUNT)
     assert len(counts["first"]) <= 8, counts["first"]
     assert len(counts["n_paths"]) <= 1, counts["n_paths"]
-    assert len(counts["dt"]) <= 1, counts["dt"]
+    assert counts["dt"] == [], counts["dt"]
+
+
+ESTIMATOR = PRELUDE + r"""
+import sys
+if sys.argv[1] == "multilevel":
+    r = nhsde.statistics.multilevel_monte_carlo(
+        system, y0, key, t1=1.0, dt=0.25, target=("mean", "energy"), rmse=1e-2, save=nhsde.Save(names=("energy",))
+    )
+    levels = len(r.n_paths_per_level)
+else:
+    r = nhsde.statistics.to_accuracy(system, y0, key, t1=1.0, statistic=("mean", "energy"), relative_rmse=1e-2)
+    levels = r.choice
+print(json.dumps({"compiled": list(compiled), "levels": levels}))
+"""
+
+
+def test_first_multilevel_monte_carlo_compiles_few_programs():
+    """On the sleigh's E[energy] to 1e-2: ≤ 12 programs for all levels (157 when each level's solve and every
+    statistic compiled its own): the step, the base step, the path offset and the reflection are data, and the
+    per-path statistics are reduced on the host."""
+    counts = counted(ESTIMATOR.replace("sys.argv[1]", "'multilevel'"))
+    assert counts["levels"] >= 3
+    assert len(counts["compiled"]) <= 12, counts["compiled"]
+    assert counts["compiled"].count("jit(_run)") == 1, counts["compiled"]
+
+
+def test_first_to_accuracy_compiles_few_programs():
+    """On the sleigh's E[energy] to 1 %: ≤ 16 programs for the pilots of both solvers, the control variate's and
+    quasi-Monte Carlo's pilots and the chosen run (136 before)."""
+    counts = counted(ESTIMATOR.replace("sys.argv[1]", "'accuracy'"))
+    assert len(counts["compiled"]) <= 16, counts["compiled"]

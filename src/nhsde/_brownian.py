@@ -12,7 +12,8 @@ alone: paths are grouped in blocks of ``BLOCK`` lanes, the block key is
   its row through ``vmap`` (no per-lane gather), which keeps the loop as cheap as
   a hand-fused one;
 - a step of ``substeps`` base steps sums the base increments, so coarse and
-  fine solves share one path (strong-error studies).
+  fine solves share one path (strong-error studies); the sum is a loop
+  (``over_substeps``), so ``substeps`` may be data of the compiled run.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ import jax.numpy as jnp
 import jax.random as jr
 from jaxtyping import Array, PRNGKeyArray, PyTree
 
+from ._misc import over_substeps, substeps_span
 from ._weak import WeakIncrement
 
 __all__ = ["BLOCK", "AbstractDriver", "StepIncrement", "Wiener", "block_keys"]
@@ -88,20 +90,25 @@ class Wiener(AbstractDriver):
         # PlatenWeak2's three-point or Gaussian increments:
         if isinstance(levy_area, type) and issubclass(levy_area, WeakIncrement):
             return levy_area.block_draw(key, k0, dt, (BLOCK,) + shape, substeps)
-        n = 2 if levy_area is dfx.SpaceTimeLevyArea else 1
-        ks = k0 * substeps + jnp.arange(substeps, dtype=jnp.int32)
-        draws = jax.vmap(lambda k: jr.normal(jr.fold_in(key, k), (n, BLOCK) + shape, dtype=dt.dtype))(ks)
+        levy = levy_area is dfx.SpaceTimeLevyArea
         sqrt_dt = jnp.sqrt(dt)
-        dw = sqrt_dt * draws[:, 0]  # (substeps, BLOCK, *shape)
-        w = jnp.sum(dw, axis=0)
-        if levy_area is not dfx.SpaceTimeLevyArea:
+        h_scale = sqrt_dt / math.sqrt(12.0)
+
+        def base_step(k, carry):
+            # H = (1/h) ∫_0^h W ds − W_h/2, with ∫ over base step i = δ (W(t_i) + ΔW_i/2 + H_i).
+            w, integral = carry
+            draws = jr.normal(jr.fold_in(key, k), (2 if levy else 1, BLOCK) + shape, dtype=dt.dtype)
+            dw = sqrt_dt * draws[0]
+            if levy:
+                integral = integral + (w + 0.5 * dw + h_scale * draws[1])
+            return w + dw, integral
+
+        zeros = jnp.zeros((BLOCK,) + shape, dt.dtype)
+        w, integral = over_substeps(base_step, k0, substeps, (zeros, zeros))
+        if not levy:
             return w
-        # H = (1/h) ∫_0^h W ds − W_h/2, with ∫ over base step i = δ (W(t_i) + ΔW_i/2 + H_i).
-        h_base = (sqrt_dt / math.sqrt(12.0)) * draws[:, 1]
-        w_before = jnp.cumsum(dw, axis=0) - dw
-        h = substeps * dt
-        integral = dt * jnp.sum(w_before + 0.5 * dw + h_base, axis=0)
-        return dfx.SpaceTimeLevyArea(dt=jnp.broadcast_to(h, (BLOCK,)), W=w, H=integral / h - 0.5 * w)
+        h = substeps_span(substeps, dt)
+        return dfx.SpaceTimeLevyArea(dt=jnp.broadcast_to(h, (BLOCK,)), W=w, H=dt * integral / h - 0.5 * w)
 
 
 class StepIncrement(dfx.AbstractBrownianPath):

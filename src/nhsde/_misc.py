@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Literal, overload
 
@@ -90,3 +91,27 @@ def check_key(key):
     if isinstance(key, (jax.Array, np.ndarray)) and key.shape == (2,) and key.dtype == jnp.uint32:
         return jr.wrap_key_data(jnp.asarray(key))
     raise TypeError(f"key={key!r}; expected a JAX random key, e.g. jax.random.key(0).")
+
+
+def over_substeps(body, k0, substeps, init):
+    """``body(k, carry)`` over the base steps ``k = k0·substeps … (k0 + 1)·substeps − 1`` of fixed step ``k0``, from
+    ``init``: a loop whose trip count may be data (one compiled program for every ratio of step to base step)."""
+    first = k0 * substeps
+    return jax.lax.fori_loop(0, substeps, lambda s, carry: body(first + s, carry), init)
+
+
+def substeps_span(substeps, dt):
+    """``substeps · dt``, the length of a step of ``substeps`` base steps (a Python int or int32 data)."""
+    return jnp.asarray(substeps, dt.dtype) * dt
+
+
+@jax.jit
+def fold_key(key, data):
+    """``jax.random.fold_in(key, data)`` as one compiled program (called eagerly it compiles two)."""
+    return jr.fold_in(key, data)
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def split_key(key, n: int = 2):
+    """``jax.random.split(key, n)`` as a tuple of ``n`` keys, one compiled program (eagerly: a split and an unstack)."""
+    return tuple(jr.split(key, n))

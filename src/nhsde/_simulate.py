@@ -18,12 +18,13 @@ about 1 GiB, so its memory is bounded by the steps per save interval.
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import dataclasses
 import functools
 import math
 import warnings
 from collections.abc import Callable
-from typing import Literal, cast
+from typing import Any, Literal, NamedTuple, cast
 
 import diffrax as dfx
 import equinox as eqx
@@ -54,6 +55,20 @@ from ._weak import WeakIncrement
 
 __all__ = ["MAX_PATH_INDEX", "MIN_PATHS", "simulate", "stable_step"]
 
+_FORWARD_ONLY = contextvars.ContextVar("nhsde_forward_only", default=False)
+
+
+@contextlib.contextmanager
+def forward_only():
+    """Within: :func:`simulate`'s caller differentiates it in forward mode only (``jax.jvp``/``jax.jacfwd`` of
+    concrete values), so the step count may be data (a while loop, which has no reverse mode)."""
+    token = _FORWARD_ONLY.set(True)
+    try:
+        yield
+    finally:
+        _FORWARD_ONLY.reset(token)
+
+
 MAX_PATH_INDEX = 2**31 - 1
 """Paths ``0 … MAX_PATH_INDEX − 1`` of a key have distinct noise (path indices are 32-bit integers)."""
 
@@ -65,11 +80,10 @@ class _Plan:
     n_paths: int
     n_chunks: int
     chunk: int
-    n_steps: int
+    n_steps: int  # 0 where the steps are data (``_Grid``): one program then serves every step
     n_save: int
     t0: float
     t1: float
-    substeps: int
     names: tuple[str, ...]
     adaptive: bool
     rtol: float
@@ -88,7 +102,21 @@ class _Plan:
         return self.n_save - 1
 
 
-def _fixed_chunk(system, params, needs: SolverNeeds, plan: _Plan, y0, key, first_path, chunk_index, meter, meter_state):
+class _Grid(NamedTuple):
+    """The fixed step as data of the compiled run: ``per_save`` steps (int32) per save interval of ``dt`` (the
+    state's dtype), ``work_dt`` the step in the stability check's precision, ``substeps`` base steps of the driver
+    per step (int32 data where ``brownian_dt`` is given, so that solves at several steps on one path share a
+    program).  Static (Python numbers) where a reverse-mode trace needs static trip counts."""
+
+    per_save: Any
+    dt: Any
+    work_dt: Any
+    substeps: Any
+
+
+def _fixed_chunk(
+    system, params, needs: SolverNeeds, plan: _Plan, grid: _Grid, y0, key, first_path, chunk_index, meter, meter_state
+):
     """Observations ``(chunk, n_save, k)``, failure flags and meter state of one chunk, fixed steps."""
     solver = needs.solver
     nb = plan.chunk // BLOCK
@@ -96,9 +124,9 @@ def _fixed_chunk(system, params, needs: SolverNeeds, plan: _Plan, y0, key, first
     keys = block_keys(key, first_path // BLOCK + chunk_index * nb, nb)
     dtype = y0.dtype
     t0 = jnp.asarray(plan.t0, dtype)
-    dt = jnp.asarray((plan.t1 - plan.t0) / plan.n_steps, dtype)
-    base_dt = dt / plan.substeps
-    per_save = plan.n_steps // plan.intervals
+    dt = jnp.asarray(grid.dt, dtype)
+    base_dt = dt / jnp.asarray(grid.substeps, dtype)
+    per_save = grid.per_save  # a Python int (static trip counts) or int32 data (one program for every step)
     observe = jax.vmap(jax.vmap(system.observe(plan.names), in_axes=(None, 0, None)), in_axes=(None, 0, None))
     total_ticks = plan.n_chunks * plan.intervals
 
@@ -121,7 +149,7 @@ def _fixed_chunk(system, params, needs: SolverNeeds, plan: _Plan, y0, key, first
     def block_step(y, y_start, alive, k, block_key, block):
         # one draw per block; each lane gets its row through vmap
         increments = system.noise.block_increment(
-            block_key, block, k, base_dt, (system.noise_dim,), plan.substeps, needs.levy_area
+            block_key, block, k, base_dt, (system.noise_dim,), grid.substeps, needs.levy_area
         )
         t = t0 + k.astype(dtype) * dt
         return jax.vmap(lane_step, in_axes=(0, 0, 0, None, 0))(y, y_start, alive, t, increments)
@@ -131,33 +159,31 @@ def _fixed_chunk(system, params, needs: SolverNeeds, plan: _Plan, y0, key, first
     def interval(carry, j):
         y, ok, meter_state = carry
 
-        def body(state, _):
+        def body(_, state):
             y, ok, k = state
             y1, good = step(y, y_start, ok, k, keys, blocks)
-            return (y1, ok & good, k + 1), None
+            return y1, ok & good, k + 1
 
-        def steps(state, count):
-            return jax.lax.scan(body, state, None, length=count)[0]
-
-        def polled(state, _):  # Ctrl-C: the host is asked once per POLL_STEPS steps, outside the step loop
+        def polled(_, state):  # Ctrl-C: the host is asked once per POLL_STEPS steps, outside the step loop
             jax.debug.callback(poll)
-            return steps(state, POLL_STEPS), None
+            return jax.lax.fori_loop(0, POLL_STEPS, body, state)
 
         # the step counter rides in the carry: no per-step arrays, memory independent of steps
-        # (both loops always, an empty one included: the program's shape and memory do not depend on the steps)
-        state = (y, ok, (j * per_save).astype(jnp.int32))
-        groups, rest = divmod(per_save, POLL_STEPS)
-        state = jax.lax.scan(polled, state, None, length=groups)[0]
+        # (both loops always, an empty one included: the program's shape and memory do not depend on the steps;
+        # with trip counts as data they are while loops, with static ones scans)
+        state = (y, ok, j.astype(jnp.int32) * per_save)
+        state = jax.lax.fori_loop(0, per_save // POLL_STEPS, polled, state)
         jax.debug.callback(poll)
-        y, ok, _ = steps(state, rest)
+        y, ok, _ = jax.lax.fori_loop(0, per_save % POLL_STEPS, body, state)
         done = chunk_index * plan.intervals + j + 1
         meter_state = meter.step(meter_state, jnp.asarray(done, dtype) / total_ticks)
-        return (y, ok, meter_state), observe(t0 + ((j + 1) * per_save).astype(dtype) * dt, y, params)
+        t = t0 + ((j + 1).astype(jnp.int32) * per_save).astype(dtype) * dt
+        return (y, ok, meter_state), observe(t, y, params)
 
     y = y_start = y0.reshape(nb, BLOCK, -1)
     # The solvers used here keep no state between steps; init only runs diffrax's checks.
     first = system.noise.block_increment(
-        keys[0], blocks[0], jnp.int32(0), base_dt, (system.noise_dim,), plan.substeps, needs.levy_area
+        keys[0], blocks[0], jnp.int32(0), base_dt, (system.noise_dim,), grid.substeps, needs.levy_area
     )
     solver.init(terms(jax.tree_util.tree_map(lambda a: a[0], first), t0), 0.0 * dt, dt, y[0, 0], params)
     ok = jnp.all(jnp.isfinite(y), axis=-1)
@@ -170,7 +196,7 @@ def _fixed_chunk(system, params, needs: SolverNeeds, plan: _Plan, y0, key, first
 
 
 def _adaptive_chunk(
-    system, params, needs: SolverNeeds, plan: _Plan, y0, key, first_path, chunk_index, meter, meter_state
+    system, params, needs: SolverNeeds, plan: _Plan, grid: _Grid, y0, key, first_path, chunk_index, meter, meter_state
 ):
     """As :func:`_fixed_chunk`, with adaptive steps (``diffeqsolve`` + ``VirtualBrownianTree``)."""
     solver = needs.solver if needs.embedded_error else dfx.HalfSolver(needs.solver)
@@ -215,7 +241,7 @@ def _adaptive_chunk(
 
 
 @eqx.filter_jit
-def _run(system: StochasticSystem, needs: SolverNeeds, y0, key, first_path, about, plan: _Plan, meter):
+def _run(system: StochasticSystem, needs: SolverNeeds, y0, key, first_path, grid: _Grid, about, plan: _Plan, meter):
     # Compute in the state's precision: float leaves follow y0's dtype.
     params = cast_floats(validated(system.params), y0.dtype)
     chunk_fn = _adaptive_chunk if plan.adaptive else _fixed_chunk
@@ -230,7 +256,9 @@ def _run(system: StochasticSystem, needs: SolverNeeds, y0, key, first_path, abou
         else:  # a common initial state is broadcast per chunk: no buffer that grows with the paths
             y0c = jnp.broadcast_to(y0, (size, y0.shape[0]))
         sized = dataclasses.replace(plan, chunk=size)
-        obs, bad, meter_state = chunk_fn(system, params, needs, sized, y0c, key, first_path, c, meter, meter_state)
+        obs, bad, meter_state = chunk_fn(
+            system, params, needs, sized, grid, y0c, key, first_path, c, meter, meter_state
+        )
         # A path whose saved values are too large for fourth moments in this precision
         # (e.g. escaping to infinity) counts as failed rather than overflowing the sums.
         bad = bad | ~jnp.all(jnp.isfinite(obs.reshape(size, -1) ** 4), axis=1)
@@ -307,13 +335,15 @@ def _run(system: StochasticSystem, needs: SolverNeeds, y0, key, first_path, abou
     ts = jnp.linspace(plan.t0, plan.t1, plan.n_save, dtype=y0.dtype)
     unstable = jnp.asarray(False)
     if plan.traced_stability:  # traced parameters: the stability limit is checked here, with the eager check's cause
-        work = _work_dtype(y0.dtype)
-        step = jnp.asarray((plan.t1 - plan.t0) / plan.n_steps, work)
-        unstable, off, _ = _linear_modes(system, needs, jax.lax.stop_gradient(params), step)
-        jax.debug.callback(
-            functools.partial(_warn_variance, solver=needs.name, dt=(plan.t1 - plan.t0) / plan.n_steps), off
-        )
+        step = jnp.asarray(grid.work_dt, _work_dtype(y0.dtype))
+        unstable, off, _ = _linear_modes(system.linear_drift, needs, jax.lax.stop_gradient(params), step)
+        jax.debug.callback(functools.partial(_warn_variance, solver=needs.name), off, step)
     return ts, sums, failures, failed, paths, unstable
+
+
+def _index(i: int):
+    """A path index as data: ``device_put``, which compiles nothing (``jnp.asarray`` compiles a program)."""
+    return jax.device_put(np.asarray(i, jax.dtypes.canonicalize_dtype(np.int64)))
 
 
 def _on_one_device(x):
@@ -361,7 +391,7 @@ _DAMPED = -1e-3
 
 
 @eqx.filter_jit
-def _linear_modes(system: StochasticSystem, needs: SolverNeeds, params, dt):
+def _linear_modes(linear_drift: Callable, needs: SolverNeeds, params, dt):
     """``(unstable, variance factor, largest gain)`` of the solver on the declared linear drift ``A``.
 
     Per eigenvalue ``λ = x + iy`` of ``A``: ``R(λh)`` is the solver's amplification on
@@ -371,7 +401,7 @@ def _linear_modes(system: StochasticSystem, needs: SolverNeeds, params, dt):
     one step adds, against the exact ``1/(2|x|)``; the factor returned is the ratio furthest
     from 1 (Euler–Maruyama on a real ``λ``: ``1/(1 − |λ|h/2)``, 2× at the ball's ``ε·dt = 1/2``).
     """
-    a = cast(Callable, system.linear_drift)(cast_floats(params, dt.dtype)).astype(dt.dtype)  # declared
+    a = linear_drift(cast_floats(params, dt.dtype)).astype(dt.dtype)  # the system's declared linear drift
     lams = jnp.linalg.eigvals(a)
     zero = jnp.zeros((2,), dt.dtype)
 
@@ -418,7 +448,7 @@ def _check_linear_stability(system: StochasticSystem, needs: SolverNeeds, dt: fl
     work = _work_dtype(dtype)
     # concrete parameters: known now, also under an outer jit (where the helper is evaluated op by op)
     with jax.ensure_compile_time_eval() if under_trace() else contextlib.nullcontext():
-        unstable, off, gain = _linear_modes(system, needs, system.params, jnp.asarray(dt, work))
+        unstable, off, gain = _linear_modes(system.linear_drift, needs, system.params, np.asarray(dt, work))
         if bool(unstable):
             fix = SimulationResult[SimulationResult.unstable_step].split("; ", 1)[1]
             raise ValueError(
@@ -440,7 +470,7 @@ def stable_step(system: StochasticSystem, solver: str | dfx.AbstractSolver, dt: 
         return True
     work = jnp.result_type(float)  # float64 where enabled
     with jax.ensure_compile_time_eval() if under_trace() else contextlib.nullcontext():
-        return not bool(_linear_modes(system, needs, system.params, jnp.asarray(dt, work))[0])
+        return not bool(_linear_modes(system.linear_drift, needs, system.params, np.asarray(dt, work))[0])
 
 
 def _variance_message(system: StochasticSystem, needs: SolverNeeds, dt: float, off: float, work) -> str:
@@ -448,7 +478,7 @@ def _variance_message(system: StochasticSystem, needs: SolverNeeds, dt: float, o
     bring it within 10 %."""
 
     def within(n: SolverNeeds, step: float) -> bool:
-        unstable, off, _ = _linear_modes(system, n, system.params, jnp.asarray(step, work))
+        unstable, off, _ = _linear_modes(system.linear_drift, n, system.params, np.asarray(step, work))
         return not bool(unstable) and abs(float(off) - 1) <= 0.1
 
     step = next((dt / 2**k for k in range(1, 30) if within(needs, dt / 2**k)), dt / 2**30)
@@ -467,14 +497,15 @@ def _variance_message(system: StochasticSystem, needs: SolverNeeds, dt: float, o
     )
 
 
-def _warn_variance(off, solver: str, dt: float) -> None:
+def _warn_variance(off, dt, solver: str) -> None:
     """Host side of the traced variance check: warn once per place where the factor is off by more than 10 %."""
     worst = np.asarray(off, np.float64).reshape(-1)
     worst = worst[np.argmax(np.abs(np.log(worst)))]
     if abs(worst - 1) > 0.1:
         warnings.warn(
-            f"dt={dt}: solver {solver!r} has a stationary variance {worst:.3g}× the exact one on this system's "
-            "linear friction (off by more than 10 %); take dt smaller (the warning called plainly names the step).",
+            f"dt={float(np.asarray(dt).reshape(-1)[0]):.6g}: solver {solver!r} has a stationary variance "
+            f"{worst:.3g}× the exact one on this system's linear friction (off by more than 10 %); take dt smaller "
+            "(the warning called plainly names the step).",
             StationaryVarianceWarning,
             stacklevel=2,
         )
@@ -485,7 +516,7 @@ def _residuals_too_large(steps_per_save, chunk, state_dim, dtype) -> bool:
 
 
 def _check_y0(system, y0, n_paths):
-    y0 = jnp.asarray(y0)
+    y0 = y0 if isinstance(y0, jax.Array) else jax.device_put(np.asarray(y0))  # (jnp.asarray compiles a program)
     if not jnp.issubdtype(y0.dtype, jnp.floating):
         y0 = y0.astype(jnp.result_type(float))
     if jnp.finfo(y0.dtype).bits < 32:
@@ -638,18 +669,35 @@ def simulate(
     n_chunks = math.ceil(n_paths / chunk_size)
     if len(devices) > 1:
         n_chunks = len(devices) * math.ceil(n_chunks / len(devices))
+    # The steps are data, so that one compiled program serves every step, unless a reverse-mode trace may need
+    # static trip counts: plain calls, and calls whose callers differentiate in forward mode only.
+    steps_as_data = not adaptive and (_FORWARD_ONLY.get() or (is_concrete(system, y0) and not under_trace()))
     checkpoint = batching.checkpoint
-    if checkpoint is None:
-        checkpoint = _residuals_too_large(n_steps // (n_save - 1), chunk_size, system.state_dim, y0.dtype)
+    if checkpoint is None:  # reverse mode's memory: only where it can run
+        checkpoint = not steps_as_data and _residuals_too_large(
+            n_steps // (n_save - 1), chunk_size, system.state_dim, y0.dtype
+        )
+    per_save = n_steps // (n_save - 1)
+    dt_used = (t1 - t0) / n_steps
+    work = _work_dtype(y0.dtype)
+    if steps_as_data:
+        shared_path = isinstance(steps, FixedSteps) and steps.brownian_dt is not None
+        grid = _Grid(
+            np.asarray(per_save, np.int32),
+            np.asarray(dt_used, y0.dtype),
+            np.asarray(dt_used, work),
+            np.asarray(substeps, np.int32) if shared_path else substeps,
+        )
+    else:
+        grid = _Grid(per_save, dt_used, dt_used, substeps)
     plan = _Plan(
         n_paths=n_paths,
         n_chunks=n_chunks,
         chunk=chunk_size,
-        n_steps=n_steps,
+        n_steps=0 if steps_as_data else n_steps,
         n_save=n_save,
         t0=t0,
         t1=t1,
-        substeps=substeps,
         names=names,
         adaptive=adaptive,
         rtol=float(getattr(steps, "rtol", 0.0)),
@@ -669,7 +717,7 @@ def simulate(
         )
     with watching():  # Ctrl-C stops the compiled run within POLL_STEPS steps
         ts, sums, (n_failed, first_failed), failed, paths, unstable = _run(
-            system, needs, y0, key, jnp.asarray(first_path), about, plan, meter
+            system, needs, y0, key, _index(first_path), grid, about, plan, meter
         )
         if is_concrete(sums, n_failed, unstable):  # one program for the statistics whatever devices ran the paths
             sums, n_failed, unstable = jax.tree_util.tree_map(_on_one_device, (sums, n_failed, unstable))
@@ -698,5 +746,5 @@ def simulate(
         names=names,
         roles=roles,
         solver=needs.name,
-        dt=(t1 - t0) / n_steps,
+        dt=dt_used,
     )

@@ -63,6 +63,8 @@ import numpy as np
 from jax.scipy.special import ndtri
 from jaxtyping import Array
 
+from ._misc import over_substeps, substeps_span
+
 __all__ = ["GaussianWeakIncrement", "PlatenWeak2", "ThreePointIncrement", "WeakIncrement"]
 
 SIXTH = 2**32 // 6
@@ -109,13 +111,18 @@ class ThreePointIncrement(WeakIncrement):
         """Increments of fixed step ``k0`` for ``shape = (lanes, m)``: ``(lanes, m + words)`` random words per base
         step, the first ``m`` compared with :data:`SIXTH` for ``ΔŴ``, the rest the signs of ``V`` (first base step)."""
         lanes, m = shape
-        ks = k0 * substeps + jnp.arange(substeps, dtype=jnp.int32)
-        bits = jax.vmap(lambda k: jr.bits(jr.fold_in(key, k), (lanes, m + _words(m)), jnp.uint32))(ks)
-        u = bits[..., :m]
-        steps = (u >= np.uint32(2**32 - SIXTH)).astype(dt.dtype) - (u < np.uint32(SIXTH)).astype(dt.dtype)
-        h = substeps * dt
-        w = jnp.sqrt(3 * dt) * jnp.sum(steps, axis=0)
-        return cls(dt=jnp.broadcast_to(h, (lanes,)), W=w, V=_two_point(bits[0, :, m:], m, h))
+
+        def draw(k):
+            return jr.bits(jr.fold_in(key, k), (lanes, m + _words(m)), jnp.uint32)
+
+        def base_step(k, total):
+            u = draw(k)[:, :m]
+            return total + (u >= np.uint32(2**32 - SIXTH)).astype(dt.dtype) - (u < np.uint32(SIXTH)).astype(dt.dtype)
+
+        steps = over_substeps(base_step, k0, substeps, jnp.zeros(shape, dt.dtype))
+        h = substeps_span(substeps, dt)
+        w = jnp.sqrt(3 * dt) * steps
+        return cls(dt=jnp.broadcast_to(h, (lanes,)), W=w, V=_two_point(draw(k0 * substeps)[:, m:], m, h))
 
 
 class GaussianWeakIncrement(WeakIncrement):
@@ -130,12 +137,14 @@ class GaussianWeakIncrement(WeakIncrement):
         """Increments of fixed step ``k0`` for ``shape = (lanes, m)``: per base step ``k`` the normals ``ndtri(u)``,
         ``u`` uniform from ``fold_in(key, k)``; the signs of ``V`` from ``fold_in(fold_in(key, k), 1)``."""
         lanes, m = shape
-        ks = k0 * substeps + jnp.arange(substeps, dtype=jnp.int32)
         tiny = jnp.finfo(dt.dtype).tiny
-        normals = jax.vmap(lambda k: ndtri(jr.uniform(jr.fold_in(key, k), shape, dt.dtype, minval=tiny)))(ks)
-        w = jnp.sqrt(dt) * jnp.sum(normals, axis=0)
-        bits = jr.bits(jr.fold_in(jr.fold_in(key, ks[0]), 1), (lanes, _words(m)), jnp.uint32)
-        h = substeps * dt
+
+        def base_step(k, total):
+            return total + ndtri(jr.uniform(jr.fold_in(key, k), shape, dt.dtype, minval=tiny))
+
+        w = jnp.sqrt(dt) * over_substeps(base_step, k0, substeps, jnp.zeros(shape, dt.dtype))
+        bits = jr.bits(jr.fold_in(jr.fold_in(key, k0 * substeps), 1), (lanes, _words(m)), jnp.uint32)
+        h = substeps_span(substeps, dt)
         return cls(dt=jnp.broadcast_to(h, (lanes,)), W=w, V=_two_point(bits, m, h))
 
 

@@ -34,6 +34,7 @@ import jax.random as jr
 from jaxtyping import Array
 
 from .._brownian import BLOCK, AbstractDriver, Wiener
+from .._misc import over_substeps, substeps_span
 from .._params import AbstractParameters, parameter, validated
 
 __all__ = [
@@ -223,15 +224,14 @@ class CompoundPoisson(AbstractDriver, AbstractParameters):
         )
         stream = jr.fold_in(key, JUMP_STREAM)
 
-        def base_step(k):
+        def base_step(k, total):
             k_count, k_size = jr.split(jr.fold_in(stream, k))
             u = jr.uniform(k_count, (BLOCK,) + shape, _count_dtype())
             counts = jnp.sum(u[..., None] < survival[..., :-1], axis=-1)
-            return law.sum_of_jumps(k_size, counts, self.max_jumps, dtype)
+            return total + law.sum_of_jumps(k_size, counts, self.max_jumps, dtype)
 
-        ks = k0 * substeps + jnp.arange(substeps, dtype=jnp.int32)
-        jumps = jnp.sum(jax.vmap(base_step)(ks), axis=0)
-        compensator = (substeps * dt) * intensity.astype(dtype) * law.moment(1).astype(dtype)
+        jumps = over_substeps(base_step, k0, substeps, jnp.zeros((BLOCK,) + shape, dtype))
+        compensator = substeps_span(substeps, dt) * intensity.astype(dtype) * law.moment(1).astype(dtype)
         return jumps - compensator
 
 

@@ -43,21 +43,18 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
 
 import diffrax as dfx
 import jax
-import jax.numpy as jnp
-import jax.random as jr
 import numpy as np
 
 from .._brownian import BLOCK
-from .._ensemble import Save, StationaryVarianceWarning
-from .._misc import check_key, check_number, check_span, check_steps, is_concrete
+from .._ensemble import Save
+from .._misc import check_key, check_number, check_span, check_steps, fold_key, is_concrete, split_key
 from .._options import AbstractSteps, Batching, FixedSteps
-from .._simulate import MAX_PATH_INDEX, simulate, stable_step
+from .._simulate import MAX_PATH_INDEX, stable_step
 from .._solvers import solver_needs
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
@@ -73,7 +70,7 @@ from ._cost import (
     peak_bytes,
     whole_pieces,
 )
-from ._extrapolation import coupled_paths, coupling_solver, extrapolate, paired_moments
+from ._extrapolation import RUN_PATHS, coupled_paths, coupling_solver, extrapolate, paired_moments, solve_paths
 from ._multilevel import MultilevelEstimate, multilevel_monte_carlo
 from ._qmc import MAX_DIMENSION, quasi_monte_carlo as randomised_quasi_monte_carlo
 from ._sensitivities import check_wrt
@@ -303,11 +300,11 @@ def _pilot(system, y0, key, cand: _Candidate, *, t0, t1, h0, levels, n_paths, sa
     rate = math.nan
     if timed:  # compiled now: time a second run of the same programs
         start = time.perf_counter()
-        jax.block_until_ready(coupled_paths(system, y0, jr.fold_in(key, 1), n_paths=n_paths, antithetic=anti, **opts))
+        jax.block_until_ready(coupled_paths(system, y0, fold_key(key, 1), n_paths=n_paths, antithetic=anti, **opts))
         rate = (time.perf_counter() - start) / work  # one run's seconds over one run's work
         work *= 2
     plain, refl = paths[:levels], paths[levels:]
-    if not all(bool(jnp.all(jnp.isfinite(p))) for p in paths):
+    if not all(np.all(np.isfinite(p)) for p in paths):
         raise ValueError(
             f"dt={h0}: the pilot of solver {cand.label} at steps {dts} gave non-finite values; pass a smaller dt "
             "(the coarsest step, where the solver is stable)."
@@ -487,7 +484,7 @@ def to_accuracy(
     if not is_concrete(system, y0):
         raise TypeError("to_accuracy chooses path counts from a pilot: it needs concrete parameters, not traced ones.")
     key = check_key(key)
-    pilot_key, run_key = jr.split(key)
+    pilot_key, run_key = split_key(key)
     use_anti = system.noise.continuous and antithetic is not False
     timed = cost == "seconds"
 
@@ -495,7 +492,7 @@ def to_accuracy(
         _pilot(
             system,
             y0,
-            jr.fold_in(pilot_key, c),
+            fold_key(pilot_key, c),
             cand,
             t0=t0,
             t1=t1,
@@ -679,10 +676,11 @@ def _alternatives(system, y0, key, cand: _Candidate, p: PilotSummary, eps, h0, s
 
 
 def _statistic_of(run_result, statistic_index):
+    """``(value, standard error)`` of the statistic at the last save time (read on the host: no program)."""
     kind, i, j = statistic_index
     if kind == "mean":
-        return run_result.mean[-1, i], run_result.mean_se[-1, i]
-    return run_result.cov[-1, i, j], run_result.cov_se[-1, i, j]
+        return np.asarray(run_result.mean)[-1, i], np.asarray(run_result.mean_se)[-1, i]
+    return np.asarray(run_result.cov)[-1, i, j], np.asarray(run_result.cov_se)[-1, i, j]
 
 
 def _runner_plain(system, y0, key, cand, h, n, anti, p: PilotSummary, common):
@@ -758,7 +756,7 @@ def _control_variate_alternative(system, y0, pilot_key, run_key, eps, h0, steps0
     save = Save(names=common["save"].names, n=common["save"].n)
     n_pilot, levels = common["pilot_paths"], common["pilot_levels"]
     h_a, h_b = h0 / 2 ** (levels - 2), h0 / 2 ** (levels - 1)
-    key = jr.fold_in(pilot_key, 99)
+    key = fold_key(pilot_key, 99)
     try:
         runs = [
             linearised_control_variate(
@@ -832,7 +830,7 @@ def _quasi_monte_carlo_alternative(
         return skip(f"does not apply: (t1 − t0)/dt = {steps0} steps, not a power of two")
     if not system.noise.continuous:
         return skip(f"does not apply: the driver {type(system.noise).__name__} has jumps")
-    key = jr.fold_in(pilot_key, 98)
+    key = fold_key(pilot_key, 98)
 
     def pilot(k):
         start = time.perf_counter()
@@ -844,21 +842,18 @@ def _quasi_monte_carlo_alternative(
         res, _ = pilot(key)
     except (ValueError, TypeError) as e:
         return skip(f"does not apply: {e}")
-    _, seconds = pilot(jr.fold_in(key, 1))  # compiled now: time a second run
+    _, seconds = pilot(fold_key(key, 1))  # compiled now: time a second run
     path_steps = r_pilot * n_q * steps_b
     rate = seconds / path_steps
-    # κ against plain Euler Monte Carlo (simulate) of the same paths and step, compiled, in either cost mode: with
-    # cost='seconds' every Euler alternative's seconds are its Euler path-steps times the Euler pilot's rate (the
-    # coupled pilot's kernel, cheaper per path-step than simulate's), so QMC's must be too, via its path-steps × κ
-    plain: dict[str, Any] = dict(n_paths=n_q, dt=h_b, solver="euler", save=save, **opts)
-    with warnings.catch_warnings():  # the reference step is the pilot's: its bias is measured, not warned of
-        warnings.simplefilter("ignore", StationaryVarianceWarning)
-        jax.block_until_ready(simulate(system, y0, jr.fold_in(key, 2), **plain).cov)
-        start = time.perf_counter()
-        for r in range(r_pilot):
-            jax.block_until_ready(simulate(system, y0, jr.fold_in(key, 3 + r), **plain).cov)
-        euler_rate = (time.perf_counter() - start) / path_steps
-    reference_work = float((1 + r_pilot) * n_q * steps_b)
+    # κ against plain Euler Monte Carlo at the same step, in the compiled program the Euler alternatives run (the
+    # Euler pilot compiled it), in either cost mode: with cost='seconds' every Euler alternative's seconds are its
+    # Euler path-steps times the Euler pilot's rate, so QMC's must be too, via its path-steps × κ
+    n_ref = RUN_PATHS * math.ceil(path_steps / steps_b / RUN_PATHS)
+    reference = dict(steps=FixedSteps(h_b, brownian_dt=h_b), solver="euler", save=common["save"], **opts)
+    start = time.perf_counter()
+    jax.block_until_ready(solve_paths(system, y0, fold_key(key, 2), first_path=0, n_paths=n_ref, **reference))
+    euler_rate = (time.perf_counter() - start) / (n_ref * steps_b)
+    reference_work = float(n_ref * steps_b)
     kappa = rate / euler_rate if euler_rate > 0 else math.nan
     work = 2 * path_steps + reference_work
     value, se = (float(x) for x in _statistic_of(res, (kind, i, j)))

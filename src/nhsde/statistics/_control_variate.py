@@ -69,6 +69,7 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from .._ensemble import Save
@@ -83,6 +84,8 @@ from ._cost import check_memory, path_bytes, peak_bytes
 from ._extrapolation import (
     Derivatives,
     Estimate,
+    array_module,
+    on_device,
     paired_moments,
     paired_sensitivities,
     paths_save,
@@ -245,12 +248,14 @@ def _split(var_y, var_c, var_sum):
     Where the control has no variance (no noise, ``ν = 0``, or ``t0``) β is its limit as the noise vanishes, 1: the
     fluctuations of ``Y`` and ``C`` agree to first order in the noise (module), and ``Ŷ − (Ĉ − E C)`` keeps the
     estimate continuous there (the noiseless motion's value, without the scheme's bias of the linear part)."""
+    xp = array_module(var_y, var_c, var_sum)
+    stop = jax.lax.stop_gradient if xp is jnp else (lambda x: x)
     cross = 0.5 * (var_sum - var_y - var_c)
     ok = var_c > 0
-    beta = jax.lax.stop_gradient(jnp.where(ok, cross / jnp.where(ok, var_c, 1.0), 1.0))
-    resid = jnp.maximum(var_y - 2 * beta * cross + beta**2 * var_c, 0.0)
-    vy, vr = jax.lax.stop_gradient(var_y), jax.lax.stop_gradient(resid)
-    reduction = jnp.where(vr > 0, vy / jnp.where(vr > 0, vr, 1.0), jnp.where(vy > 0, jnp.inf, 1.0))
+    beta = stop(xp.where(ok, cross / xp.where(ok, var_c, 1.0), 1.0))
+    resid = xp.maximum(var_y - 2 * beta * cross + beta**2 * var_c, 0.0)
+    vy, vr = stop(var_y), stop(resid)
+    reduction = xp.where(vr > 0, vy / xp.where(vr > 0, vr, 1.0), xp.where(vy > 0, xp.inf, 1.0))
     return beta, resid, reduction
 
 
@@ -263,7 +268,7 @@ def _closure(control: StochasticSystem, dtype) -> GaussianClosure:
     params = cast_floats(validated(control.params), dtype)
     system = eqx.tree_at(lambda s: s.params, control, params)
     intensity = driver_intensity(control.noise, control.noise_dim, dtype)
-    return GaussianClosure(system, intensity, (), jnp.zeros((1, 0), dtype), jnp.ones((1,), dtype))
+    return GaussianClosure(system, intensity, (), np.zeros((1, 0), dtype), np.ones((1,), dtype))
 
 
 @eqx.filter_jit
@@ -275,10 +280,9 @@ def _exact(closure, ito, params, names, p0, y0, t0, t1, n_ode, n_save):
     return ts, *_control_moments(ito, params, names, ts, ms[:, :d], ms[:, d:], ks[:, d:, d:])
 
 
-@eqx.filter_jit
 def _statistics(y, c):
     """Plain and control moments of the paths, and ``(β, residual variance, reduction)`` for the means and the
-    covariances."""
+    covariances (on the host for concrete paths: ``array_module``)."""
     plain = paired_moments([y], [1.0])
     mean_c, cov_c, mvar_c, cvar_c = paired_moments([c], [1.0])
     _, _, mvar_s, cvar_s = paired_moments([y, c], [1.0, 1.0])
@@ -390,8 +394,11 @@ def control_variate(
         return _exact(closure, ito, cast_floats(ito.params, y0.dtype), names, p0, y0, t0, t1, n_ode, n_save)
 
     y, t_y = with_tangents(lambda s: run(s, y0), system, wrt)
-    c, t_c = with_tangents(lambda s: run(linearised_system(s, follow=follow), jnp.concatenate([p0, y0])), system, wrt)
+    start = array_module(p0, y0).concatenate([p0, y0])
+    c, t_c = with_tangents(lambda s: run(linearised_system(s, follow=follow), start), system, wrt)
     (ts, exact_mean, exact_cov), d_exact = with_tangents(exact, system, wrt)
+    if array_module(y, c, exact_mean) is np:  # the combination on the host, with the paths' statistics
+        ts, exact_mean, exact_cov = (np.asarray(a, np.float64) for a in (ts, exact_mean, exact_cov))
     (mean_y, cov_y, mvar_y, cvar_y), (mean_c, cov_c), beta, resid, reduction = _statistics(y, c)
     (beta_m, beta_c), (resid_m, resid_c), (red_m, red_c) = beta, resid, reduction
     derivatives = None
@@ -407,7 +414,7 @@ def control_variate(
             wrt,
         )
 
-    count, roles = jnp.asarray(n_paths), roles_of(system, names)
+    count, roles = jax.device_put(np.asarray(n_paths)), roles_of(system, names)
     plain_estimate = Estimate(
         ts=ts,
         mean=mean_y,
@@ -418,7 +425,7 @@ def control_variate(
         names=names,
         roles=roles,
     )
-    return ControlVariateEstimate(
+    estimate = ControlVariateEstimate(
         ts=ts,
         mean=mean_y - beta_m * (mean_c - exact_mean),
         cov=cov_y - beta_c * (cov_c - exact_cov),
@@ -434,3 +441,4 @@ def control_variate(
         roles=roles,
         n_steps=n_steps,
     )
+    return on_device(estimate, y.dtype)

@@ -25,6 +25,7 @@ set ``simulate``'s ``covariance_variance``), never zero for a non-degenerate sam
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import warnings
 from collections.abc import Callable, Sequence
@@ -33,18 +34,19 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Int
 
 from .._ensemble import AbstractMoments, Save, StationaryVarianceWarning
-from .._misc import check_number, check_span, check_steps
+from .._misc import check_number, check_span, check_steps, fold_key, is_concrete, under_trace
 from .._options import Batching, FixedSteps
-from .._simulate import simulate
+from .._simulate import forward_only, simulate
 from .._solvers import solver_needs
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
 from ._cost import check_memory, path_bytes, peak_bytes
 from ._sensitivities import check_wrt
-from ._variance_reduction import antithetic as reflected
+from ._variance_reduction import antithetic as reflected, signed
 
 __all__ = ["Derivatives", "Estimate", "Extrapolation", "extrapolate"]
 
@@ -89,37 +91,58 @@ class Extrapolation(Estimate):
     derivatives: Derivatives | None
 
 
+def array_module(*trees):
+    """The array module for statistics of kept per-path values: NumPy (float64, on the host) when every value is
+    concrete, so that no XLA program is compiled per path count; ``jax.numpy`` under JAX transformations."""
+    return np if is_concrete(*trees) else jnp
+
+
+def on_device(tree, dtype):
+    """``tree`` with its host (NumPy) floating-point leaves as JAX arrays of ``dtype``: a transfer, no program."""
+
+    def move(x):
+        host = isinstance(x, (np.ndarray, np.generic)) and np.issubdtype(x.dtype, np.floating)
+        return jax.device_put(np.asarray(x, dtype)) if host else x  # (jnp.asarray compiles a program per shape)
+
+    return jax.tree.map(move, tree)
+
+
 def safe_sqrt(v):
+    xp = array_module(v)
     pos = v > 0
-    return jnp.where(pos, jnp.sqrt(jnp.where(pos, v, 1.0)), 0.0)
+    return xp.where(pos, xp.sqrt(xp.where(pos, v, 1.0)), 0.0)
 
 
 def paired_moments(paths: Sequence[Array], weights: Sequence[float]):
     """``(mean, cov, mean_var, cov_var)`` of ``Σ_a w_a S(Z_a)``, ``Z_a`` ``(N, n, k)`` values of the same paths.
 
     ``S`` is the sample mean or the unbiased sample covariance; ``*_var`` are the
-    squared standard errors (see the module).
+    squared standard errors (see the module).  Concrete values are reduced on the host in float64
+    (:func:`array_module`).
     """
+    xp = array_module(paths, weights)
+    if xp is np:
+        paths = [np.asarray(z, np.float64) for z in paths]
     n = paths[0].shape[0]
     combined = sum(w * z for w, z in zip(weights, paths, strict=True))
-    mean = jnp.mean(combined, axis=0)
-    mean_var = jnp.var(combined, axis=0, ddof=1) / n
-    centred = [z - jnp.mean(z, axis=0) for z in paths]
-    cov = jnp.zeros(mean.shape + mean.shape[-1:], mean.dtype)
-    second, pair = jnp.zeros_like(cov), jnp.zeros_like(cov)
+    mean = xp.mean(combined, axis=0)
+    mean_var = xp.var(combined, axis=0, ddof=1) / n
+    centred = [z - xp.mean(z, axis=0) for z in paths]
+    cov = xp.zeros(mean.shape + mean.shape[-1:], mean.dtype)
+    second, pair = xp.zeros_like(cov), xp.zeros_like(cov)
     for w, f in zip(weights, centred, strict=True):
-        cov = cov + w * jnp.einsum("pni,pnj->nij", f, f) / (n - 1)
+        cov = cov + w * xp.einsum("pni,pnj->nij", f, f) / (n - 1)
     for wa, fa in zip(weights, centred, strict=True):
         for wb, fb in zip(weights, centred, strict=True):
             prod = fa * fb
-            second = second + wa * wb * jnp.einsum("pni,pnj->nij", prod, prod) / n
-            cross = jnp.einsum("pni,pnj->nij", fa, fb) / n  # C^{ab}_ij = cov(Z_a,i, Z_b,j), central
-            diag = jnp.diagonal(cross, axis1=-2, axis2=-1)
-            pair = pair + wa * wb * (diag[..., :, None] * diag[..., None, :] + cross * jnp.swapaxes(cross, -1, -2))
+            second = second + wa * wb * xp.einsum("pni,pnj->nij", prod, prod) / n
+            cross = xp.einsum("pni,pnj->nij", fa, fb) / n  # C^{ab}_ij = cov(Z_a,i, Z_b,j), central
+            diag = xp.diagonal(cross, axis1=-2, axis2=-1)
+            pair = pair + wa * wb * (diag[..., :, None] * diag[..., None, :] + cross * xp.swapaxes(cross, -1, -2))
     # covariance_variance (simulate's) for the combination: (m₂₂ − m²)/n + Σ_ab w_a w_b (C^ab_ii C^ab_jj +
     # C^ab_ij C^ab_ji)/(n(n − 1)), the exact covariance of unbiased sample covariances, with central moments
     m = cov * (n - 1) / n
-    cov_var = jnp.maximum(second - m**2, 0.0) / n + pair / (n * (n - 1))
+    cov_var = xp.maximum(second - m**2, 0.0) / n + pair / (n * (n - 1))
     return mean, cov, mean_var, cov_var
 
 
@@ -133,18 +156,21 @@ def paired_sensitivities(
     ``a`` (the paths are shared).  Weights are numbers or arrays per entry (``(n, k)`` for the mean, ``(n, k, k)``
     for the covariance: ``cov_weights`` ``w'``, default ``weights``)."""
     cov_weights = weights if cov_weights is None else cov_weights
+    xp = array_module(paths, tangents, weights, cov_weights)
+    if xp is np:
+        paths, tangents = ([np.asarray(z, np.float64) for z in zs] for zs in (paths, tangents))
     n = paths[0].shape[0]
     combined = sum(w * t for w, t in zip(weights, tangents, strict=True))
-    d_mean = jnp.mean(combined, axis=1)
-    d_mean_var = jnp.var(combined, axis=1, ddof=1) / n
+    d_mean = xp.mean(combined, axis=1)
+    d_mean_var = xp.var(combined, axis=1, ddof=1) / n
     psi = 0.0
     for w, z, t in zip(cov_weights, paths, tangents, strict=True):
-        f = z - jnp.mean(z, axis=0)
-        tc = t - jnp.mean(t, axis=1, keepdims=True)
-        tf = jnp.einsum("apni,pnj->apnij", tc, f)
-        psi = psi + w * (tf + jnp.swapaxes(tf, -1, -2))
-    d_cov = jnp.sum(psi, axis=1) / (n - 1)
-    d_cov_var = (n / (n - 1)) ** 2 * jnp.var(psi, axis=1, ddof=1) / n
+        f = z - xp.mean(z, axis=0)
+        tc = t - xp.mean(t, axis=1, keepdims=True)
+        tf = xp.einsum("apni,pnj->apnij", tc, f)
+        psi = psi + w * (tf + xp.swapaxes(tf, -1, -2))
+    d_cov = xp.sum(psi, axis=1) / (n - 1)
+    d_cov_var = (n / (n - 1)) ** 2 * xp.var(psi, axis=1, ddof=1) / n
     return d_mean, d_cov, d_mean_var, d_cov_var
 
 
@@ -184,8 +210,10 @@ def with_tangents(fn: Callable[[StochasticSystem], Any], system: StochasticSyste
         return value, value
 
     values = tuple(jnp.asarray(getattr(system.params, name)) for name in wrt)
-    d, value = jax.jacfwd(both, argnums=tuple(range(len(wrt))), has_aux=True)(*values)
-    return value, jax.tree.map(lambda _, per_parameter: jnp.stack(per_parameter), value, d)
+    # concrete parameters: only this forward-mode pass differentiates the solves, so their steps may be data
+    with forward_only() if is_concrete(system) and not under_trace() else contextlib.nullcontext():
+        d, value = jax.jacfwd(both, argnums=tuple(range(len(wrt))), has_aux=True)(*values)
+    return value, jax.tree.map(lambda _, per_parameter: array_module(per_parameter).stack(per_parameter), value, d)
 
 
 KEY_PATHS = 2**30
@@ -198,21 +226,34 @@ def key_segments(key, first_path: int, n_paths: int):
     while n_paths > 0:
         segment, first = divmod(first_path, KEY_PATHS)
         size = min(n_paths, KEY_PATHS - first)
-        yield (key if segment == 0 else jax.random.fold_in(key, segment)), first, size
+        yield (key if segment == 0 else fold_key(key, segment)), first, size
         first_path, n_paths = first_path + size, n_paths - size
+
+
+RUN_PATHS = 1024
+"""Paths per :func:`~nhsde.simulate` call of the estimators: every count runs as whole runs of this size (the
+last run's surplus, the next paths of the same key, is dropped), so one compiled program serves every count."""
 
 
 def solve_paths(system: StochasticSystem, y0, key, *, first_path: int, n_paths: int, **options) -> Array:
     """Per-path saved values of paths ``first_path … first_path + n_paths − 1`` (:data:`KEY_PATHS` per key) by
-    :func:`~nhsde.simulate` with ``options`` (whose ``save`` keeps the paths)."""
+    :func:`~nhsde.simulate` with ``options`` (whose ``save`` keeps the paths), in runs of :data:`RUN_PATHS`;
+    concrete values are gathered on the host (:func:`array_module`)."""
     parts = []
+    system = signed(system)  # one program for the paths and their reflections
+    steps = options.get("steps")
+    if isinstance(steps, FixedSteps) and steps.brownian_dt is None:  # the base step as data: one program for all
+        options = {**options, "steps": FixedSteps(steps.dt, brownian_dt=steps.dt, max_steps=steps.max_steps)}
     for k, first, size in key_segments(key, first_path, n_paths):
-        with warnings.catch_warnings():  # coarse steps are the estimators' own: their bias is measured and priced
-            warnings.simplefilter("ignore", StationaryVarianceWarning)
-            ens = simulate(system, y0, k, n_paths=size, first_path=first, **options)
-        assert ens.paths is not None
-        parts.append(ens.paths)
-    return parts[0] if len(parts) == 1 else jnp.concatenate(parts)
+        for start in range(first, first + size, RUN_PATHS):
+            with warnings.catch_warnings():  # coarse steps are the estimators' own: their bias is measured and priced
+                warnings.simplefilter("ignore", StationaryVarianceWarning)
+                ens = simulate(system, y0, k, n_paths=RUN_PATHS, first_path=start, **options)
+            assert ens.paths is not None
+            parts.append((ens.paths, min(RUN_PATHS, first + size - start)))
+    xp = array_module([p for p, _ in parts])
+    kept = [(np.asarray(p) if xp is np else p)[:keep] for p, keep in parts]
+    return kept[0] if len(kept) == 1 else xp.concatenate(kept)
 
 
 def coupled_paths(
@@ -336,7 +377,7 @@ def extrapolate(
         weights = [share * coarse, share * fine] * (len(paths) // 2)
         mean, cov, mean_var, cov_var = paired_moments(paths, weights)
         return Estimate(
-            ts=jnp.linspace(t0, t1, mean.shape[0], dtype=mean.dtype),
+            ts=np.linspace(t0, t1, mean.shape[0]),
             mean=mean,
             cov=cov,
             mean_se=safe_sqrt(mean_var),
@@ -354,9 +395,10 @@ def extrapolate(
             paths, tangents, [share * -c, share * (1 + c)] * (len(paths) // 2)
         )
         derivatives = Derivatives(d_mean, d_cov, safe_sqrt(d_mean_var), safe_sqrt(d_cov_var), wrt)
-    return Extrapolation(
+    result = Extrapolation(
         **{f.name: getattr(extrapolated, f.name) for f in dataclasses.fields(Estimate)},
         fine=estimate(0.0, 1.0),
         correction=estimate(-c, c),
         derivatives=derivatives,
     )
+    return on_device(result, paths[0].dtype)

@@ -39,13 +39,13 @@ import math
 from collections.abc import Sequence
 
 import equinox as eqx
-import jax.numpy as jnp
-import jax.random as jr
+import jax
+import numpy as np
 from jaxtyping import Array, Float
 
 from .._brownian import BLOCK
 from .._ensemble import Save
-from .._misc import check_key, check_number, check_span, check_steps, is_concrete
+from .._misc import check_key, check_number, check_span, check_steps, fold_key, is_concrete
 from .._options import AbstractSteps, Batching, FixedSteps
 from .._solvers import solver_needs
 from .._system import StochasticSystem
@@ -53,8 +53,10 @@ from .._weak import PlatenWeak2
 from ._cost import MAX_LEVELS, allocate, check_memory, level_cost, level_piece, path_bytes, peak_bytes
 from ._extrapolation import (
     Estimate,
+    array_module,
     coupled_paths,
     coupling_solver,
+    on_device,
     paired_moments,
     paired_sensitivities,
     paths_save,
@@ -142,7 +144,7 @@ class _Levels:
     def run(self, level: int, first_path: int, n_paths: int) -> tuple[list[Array], list[Array]]:
         h = self.h0 / 2**level
         dts = (h, 2 * h) if level else (h,)
-        key = jr.fold_in(self.key, level)
+        key = fold_key(self.key, level)
         return coupled_paths(
             *self.args, key, dts=dts, brownian_dt=h, n_paths=n_paths, first_path=first_path, **self.opts
         )
@@ -168,13 +170,15 @@ class _Levels:
 
     def moments(self, level: int):
         """``(mean, cov, mean_var, cov_var)`` of the level's term ``P_ℓ − P_{ℓ−1}`` (``P_0`` at level 0)."""
-        sets = [jnp.concatenate(parts) for parts in zip(*self.paths[level], strict=True)]
+        xp = array_module(self.paths[level])
+        sets = [xp.concatenate(parts) for parts in zip(*self.paths[level], strict=True)]
         return paired_moments(sets, self.weights(level))
 
     def sensitivities(self, level: int):
         """``(d_mean, d_cov, d_mean_var, d_cov_var)`` of the level's term in the parameters ``wrt``."""
-        sets = [jnp.concatenate(parts) for parts in zip(*self.paths[level], strict=True)]
-        tangents = [jnp.concatenate(parts, axis=1) for parts in zip(*self.tangents[level], strict=True)]
+        xp = array_module(self.paths[level], self.tangents[level])
+        sets = [xp.concatenate(parts) for parts in zip(*self.paths[level], strict=True)]
+        tangents = [xp.concatenate(parts, axis=1) for parts in zip(*self.tangents[level], strict=True)]
         return paired_sensitivities(sets, tangents, self.weights(level))
 
 
@@ -305,25 +309,27 @@ def multilevel_monte_carlo(
         moments = _adapt(levels, eps, alpha, max_levels, kind, i, j)
         counts = [levels.count(level) for level in range(len(moments))]
 
-    mean, cov, mean_var, cov_var = (jnp.sum(jnp.stack(parts), axis=0) for parts in zip(*moments, strict=True))
-    level_means = jnp.stack([_pick(kind, i, j, m[0], m[1]) for m in moments])
-    level_vars = jnp.stack([_pick(kind, i, j, m[2], m[3]) * n for m, n in zip(moments, counts)])
+    xp = array_module(moments)
+    mean, cov, mean_var, cov_var = (xp.sum(xp.stack(parts), axis=0) for parts in zip(*moments, strict=True))
+    level_means = xp.stack([_pick(kind, i, j, m[0], m[1]) for m in moments])
+    level_vars = xp.stack([_pick(kind, i, j, m[2], m[3]) * n for m, n in zip(moments, counts)])
     value, var = _pick(kind, i, j, mean, cov), _pick(kind, i, j, mean_var, cov_var)
     d_value = d_value_se = None
     if wrt:
+        sensitivities = [levels.sensitivities(level) for level in range(len(counts))]
+        xp = array_module(sensitivities)
         d_mean, d_cov, d_mean_var, d_cov_var = (
-            jnp.sum(jnp.stack(parts), axis=0)
-            for parts in zip(*(levels.sensitivities(level) for level in range(len(counts))), strict=True)
+            xp.sum(xp.stack(parts), axis=0) for parts in zip(*sensitivities, strict=True)
         )
         d_value = d_mean[:, -1, i] if kind == "mean" else d_cov[:, -1, i, j]
         d_value_se = safe_sqrt(d_mean_var[:, -1, i] if kind == "mean" else d_cov_var[:, -1, i, j])
-    return MultilevelEstimate(
-        ts=jnp.linspace(t0, t1, mean.shape[0], dtype=mean.dtype),
+    estimate = MultilevelEstimate(
+        ts=np.linspace(t0, t1, mean.shape[0]),
         mean=mean,
         cov=cov,
         mean_se=safe_sqrt(mean_var),
         cov_se=safe_sqrt(cov_var),
-        n_paths=jnp.asarray(sum(counts)),
+        n_paths=jax.device_put(np.asarray(sum(counts))),
         names=save.names,
         roles=roles_of(system, save.names),
         value=value,
@@ -339,13 +345,15 @@ def multilevel_monte_carlo(
         d_value_se=d_value_se,
         wrt=wrt,
     )
+    return on_device(estimate, levels.paths[0][0][0].dtype)
 
 
 def _bias(level_means, alpha):
     """Giles (2015) Algorithm 1: ``max(|Ŷ_L|, |Ŷ_{L−1}|/2^α)/(2^α − 1)``."""
+    xp = array_module(level_means)
     if level_means.shape[0] < 2:
-        return jnp.asarray(jnp.nan, level_means.dtype)
-    return jnp.maximum(jnp.abs(level_means[-1]), jnp.abs(level_means[-2]) / 2**alpha) / (2**alpha - 1)
+        return xp.asarray(xp.nan, level_means.dtype)
+    return xp.maximum(xp.abs(level_means[-1]), xp.abs(level_means[-2]) / 2**alpha) / (2**alpha - 1)
 
 
 def _adapt(levels: _Levels, eps: float, alpha: float, max_levels: int, kind, i, j):
@@ -371,7 +379,7 @@ def _adapt(levels: _Levels, eps: float, alpha: float, max_levels: int, kind, i, 
         if wanted != counts:
             levels.check_memory(wanted, f"rmse={eps:.3g}: the samples per level {tuple(wanted)}", "raise rmse.")
             continue
-        means = jnp.stack([_pick(kind, i, j, m[0], m[1]) for m in moments])
+        means = np.stack([_pick(kind, i, j, m[0], m[1]) for m in moments])
         if float(_bias(means, alpha)) <= eps / math.sqrt(2):
             return moments
         if n_levels >= max_levels:

@@ -37,12 +37,12 @@ from jaxtyping import Array, PRNGKeyArray, UInt
 
 from .._brownian import BLOCK, AbstractDriver
 from .._ensemble import Save
-from .._misc import check_key, check_number, check_span, check_steps
+from .._misc import check_key, check_number, check_span, check_steps, fold_key
 from .._options import AbstractSteps, Batching
 from .._simulate import MAX_PATH_INDEX, simulate
 from .._solvers import SOLVERS, solver_needs
 from .._system import StochasticSystem
-from ._extrapolation import Derivatives, Estimate, roles_of, with_tangents
+from ._extrapolation import Derivatives, Estimate, array_module, on_device, roles_of, with_tangents
 from ._sensitivities import check_wrt
 
 __all__ = ["QuasiMonteCarloEstimate", "quasi_monte_carlo", "scrambled_sobol", "sobol_points"]
@@ -140,6 +140,7 @@ class _ScrambledSobol(AbstractDriver):
         return self._bridge(block, lanes, (k0 + 1) * substeps, dt) - self._bridge(block, lanes, k0 * substeps, dt)
 
 
+@functools.partial(jax.jit, static_argnums=1)
 def scrambled_sobol(key: PRNGKeyArray, d: int) -> tuple[Array, Array]:
     """Linearly scrambled direction numbers ``(d, 32)`` and a digital shift ``(d,)``, ``uint32``, from ``key``.
 
@@ -179,15 +180,16 @@ def _combine(means: Array, seconds: Array):
     ``E[m mᵀ] = μμᵀ + Cov(m)``, and ``Cov(m)`` is estimated without bias by the replicate spread over ``R``:
     ``cov = avg(S_r) − m mᵀ − Σ_r (m_r − m)(m_r − m)ᵀ / (R(R − 1))``.
     """
+    xp = array_module(means, seconds)
     r = means.shape[0]
-    mean = jnp.mean(means, axis=0)
+    mean = xp.mean(means, axis=0)
     dev = means - mean
-    spread = jnp.einsum("rni,rnj->nij", dev, dev) / (r * (r - 1))
-    return mean, jnp.mean(seconds, axis=0) - jnp.einsum("ni,nj->nij", mean, mean) - spread
+    spread = xp.einsum("rni,rnj->nij", dev, dev) / (r * (r - 1))
+    return mean, xp.mean(seconds, axis=0) - xp.einsum("ni,nj->nij", mean, mean) - spread
 
 
 def _se(per_replicate: Array, axis: int = 0) -> Array:
-    return jnp.std(per_replicate, axis=axis, ddof=1) / math.sqrt(per_replicate.shape[axis])
+    return array_module(per_replicate).std(per_replicate, axis=axis, ddof=1) / math.sqrt(per_replicate.shape[axis])
 
 
 def quasi_monte_carlo(
@@ -282,18 +284,20 @@ def quasi_monte_carlo(
 
         def moments(s):
             ens = simulate(s, y0, k, n_paths=n_paths, t0=t0, t1=t1, dt=dt, solver=solver, save=save, batching=batching)
-            second = ens.cov * ((n_paths - 1) / n_paths) + jnp.einsum("ni,nj->nij", ens.mean, ens.mean)
-            return ens.ts, ens.mean, second
+            xp = array_module(ens.mean, ens.cov)  # concrete: on the host, no program per shape
+            mean, cov = (np.asarray(a, np.float64) for a in (ens.mean, ens.cov)) if xp is np else (ens.mean, ens.cov)
+            return ens.ts, mean, cov * ((n_paths - 1) / n_paths) + xp.einsum("ni,nj->nij", mean, mean)
 
         return with_tangents(moments, driven, wrt)
 
-    runs = [replicate(k) for k in jr.split(key, replicates)]
+    runs = [replicate(fold_key(key, r)) for r in range(replicates)]  # independent scramblings
     tangents = [tangent for _, tangent in runs if tangent is not None]  # with wrt
     ts = runs[0][0][0]
-    means = jnp.stack([value[1] for value, _ in runs])
-    seconds = jnp.stack([value[2] for value, _ in runs])
+    xp = array_module([value for value, _ in runs])
+    means = xp.stack([value[1] for value, _ in runs])
+    seconds = xp.stack([value[2] for value, _ in runs])
     mean, cov = _combine(means, seconds)
-    per_cov = seconds - jnp.einsum("rni,rnj->rnij", means, means)
+    per_cov = seconds - xp.einsum("rni,rnj->rnij", means, means)
     derivatives = None
     if tangents:
         d_means = jnp.stack([tangent[1] for tangent in tangents], axis=1)  # (p, R, n, k)
@@ -302,15 +306,16 @@ def quasi_monte_carlo(
         d_outer = jnp.einsum("prni,rnj->prnij", d_means, means)
         d_per_cov = d_seconds - d_outer - jnp.swapaxes(d_outer, -1, -2)
         derivatives = Derivatives(d_mean, d_cov, _se(d_means, 1), _se(d_per_cov, 1), wrt)
-    return QuasiMonteCarloEstimate(
+    estimate = QuasiMonteCarloEstimate(
         ts=ts,
         mean=mean,
         cov=cov,
         mean_se=_se(means),
         cov_se=_se(per_cov),
-        n_paths=jnp.asarray(replicates * n_paths),
+        n_paths=jax.device_put(np.asarray(replicates * n_paths)),
         names=names,
         roles=roles_of(system, names),
         replicates=replicates,
         derivatives=derivatives,
     )
+    return on_device(estimate, ts.dtype)
