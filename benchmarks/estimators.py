@@ -1,6 +1,9 @@
 """Drift statistics at a requested accuracy for the least work: plain Monte Carlo against the new estimators.
 
     python benchmarks/estimators.py [--quick] [--scenes ball,sleigh,chaplygin-ball,body] [--out FILE]
+    python benchmarks/estimators.py --first-answer [--quick] [--src DIR] [--rows ROWS] [--out FILE]
+
+Warm mode (the default):
 
 For each scene and statistic with an exact value (ball: K_xx(t1), S0 (3.1); sleigh:
 E[H](t1) = H0 e^{−4εt1} + ν(1 − e^{−4εt1})/(4ε); Chaplygin's ball: the stationary
@@ -24,6 +27,33 @@ process, float64:
    extrapolated Euler −2.5, MLMC −2).
 
 Writes benchmarks/results/estimators.json and prints the tables.
+
+First-answer mode (``--first-answer``): every measurement in a fresh Python process, compilation
+included (this file run as ``--child ROW`` by :mod:`subprocess` with ``sys.executable``; JAX's
+persistent compilation cache off unless the row is about it), float64:
+
+(a) ``to_accuracy`` (absolute RMSE = rel·|value|) against the best plain ``simulate`` setting
+    for that accuracy (solver, dt, N as recorded by the warm mode, ``BEST_PLAIN``), on the sleigh
+    (``ChaplyginSleigh(drift=False)``, E[H](2)), Chaplygin's ball (E[H](4)) and the body on the
+    vibrating plane (E[H](1)), at relative RMSE 1e-2 and 1e-3: seconds of the first call
+    (imports excluded, compilation included), XLA programs compiled, realised error against the
+    exact value (the body: against the recorded reference, whose own SE is 6.6e-4);
+(b) the same call again in the same process (warm: nothing left to compile);
+(c) the command: ``nhsde simulate chaplygin-sleigh --relative-rmse 1e-2`` against the plain
+    ``nhsde simulate chaplygin-sleigh`` (defaults), wall seconds of each process;
+(d) the persistent compilation cache: the README's main job
+    (``nhsde simulate ball-on-vibrating-plane --paths 4096 --t1 10 --dt 0.01``) and the ``--rmse``
+    command, each run twice with ``NHSDE_COMPILATION_CACHE`` set to a new empty folder: the second
+    process (cache warm) against the first (cold).
+
+``to_accuracy`` runs with its default coarsest step; where that fails (Chaplygin's ball at
+b9742d2: 3 of 1024 pilot paths fail at h0 = t1/4 = 1), the row is run again at the warm mode's
+h0 (``SCENE:REL:to_accuracy:dt=H``).  ``--quick``: the sleigh at 1e-2 only (``--scenes`` to
+choose), (c), and (d) for the main job only (a few minutes, most of it to_accuracy compiling).
+``--src DIR``: this process and its children import nhsde from DIR, e.g. a clean
+``git archive HEAD src | tar -x -C /tmp/clean`` while the work tree is being edited.
+``--rows``: only these (a, b) rows.  Writes
+benchmarks/results/first_answer.json (``_quick`` with ``--quick``) after every row and prints the table.
 """
 
 from __future__ import annotations
@@ -34,10 +64,16 @@ import math
 import os
 import pathlib
 import platform
+import subprocess
+import sys
+import tempfile
 import time
 
 import jax
 
+for _i, _arg in enumerate(sys.argv[:-1]):  # --src DIR: this process imports nhsde from there too, not the work tree
+    if _arg == "--src":
+        sys.path.insert(0, str(pathlib.Path(sys.argv[_i + 1]).resolve()))
 jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
@@ -415,6 +451,278 @@ def run_case(case, args):
     return out
 
 
+# ---------------------------------------------------------------------------------------------------------------
+# First-answer mode: a fresh process per row, compilation included
+
+# The best plain-MC setting (solver, dt, paths) per scene and relative RMSE, as the warm mode chose it
+# (results/estimators.json, results/estimators_body.json: the cheapest modelled (h, N) over the solvers).
+BEST_PLAIN = {
+    ("sleigh", 1e-2): ("weak2", 2 / 11, 11951),
+    ("sleigh", 1e-3): ("weak2", 2 / 33, 1255586),
+    ("chaplygin-ball", 1e-2): ("weak2", 1 / 23, 8276),
+    ("chaplygin-ball", 1e-3): ("weak2", 1 / 73, 824462),
+    ("body", 1e-2): ("heun2", 1 / 8, 1151),
+    ("body", 1e-3): ("heun2", 1 / 8, 119258),
+}
+# The body has no closed form: the warm mode's reference (weak2-gauss, h = 1/64, 2^18 paths, key 99).
+BODY_REFERENCE = (0.9772047653522702, 0.0006581949898250264)
+FIRST_ANSWER_SCENES = ("sleigh", "chaplygin-ball", "body")
+MAIN_JOB = ["simulate", "ball-on-vibrating-plane", "--paths", "4096", "--t1", "10", "--dt", "0.01"]
+CLI_PLAIN = ["simulate", "chaplygin-sleigh"]
+CLI_RMSE = ["simulate", "chaplygin-sleigh", "--relative-rmse", "1e-2"]
+
+
+def count_compilations():
+    """A list that collects the names of the XLA programs compiled from now on (``jax_log_compiles``)."""
+    import logging
+
+    compiled = []
+
+    class Count(logging.Handler):
+        def emit(self, record):
+            message = record.getMessage()
+            if message.startswith("Compiling "):
+                compiled.append(message.split(" ")[1])
+
+    logging.getLogger("jax").addHandler(Count())
+    logging.getLogger("jax").setLevel(logging.WARNING)
+    jax.config.update("jax_log_compiles", True)
+    return compiled
+
+
+def child(row):
+    """One row ``SCENE:REL:METHOD`` (METHOD ``to_accuracy`` or ``plain``) in this fresh process: the first call
+    (compilation included), then the same call again (warm); prints one JSON line."""
+    scene, rel, method, *option = row.split(":")  # option: dt=H, to_accuracy's coarsest step (default its own)
+    rel = float(rel)
+    h0 = {k: float(v) for k, v in (o.split("=") for o in option)}.get("dt")
+    compiled = count_compilations()
+    case = CASES[scene]()
+    exact = BODY_REFERENCE[0] if case["exact"] is None else case["exact"]
+    eps = rel * abs(exact)
+    out = dict(row=row, scene=scene, rel=rel, method=method, rmse=eps, exact=exact, reference=case["exact"] is None)
+    out["dt"] = h0
+
+    def call():
+        if method == "plain":
+            solver, dt, n_paths = BEST_PLAIN[(scene, rel)]
+            ens = simulate(case, solver, dt, n_paths, key=4)
+            jax.block_until_ready(ens.mean)
+            value, se = pick(case, ens)
+            return value, se, dict(solver=solver, dt=dt, n_paths=n_paths)
+        res = nhsde.statistics.to_accuracy(
+            case["system"],
+            case["y0"],
+            jax.random.key(5),
+            t1=case["t1"],
+            statistic=case["target"],
+            rmse=eps,
+            dt=h0,
+            save=case["save"],
+        )
+        extra = dict(
+            choice=res.choice,
+            work=res.work,
+            pilot_work=res.pilot_work,
+            predicted_work=res.predicted_work,
+            compile_seconds=res.compile_seconds,
+            run_seconds=res.run_seconds,
+            bias_estimate=res.bias,
+        )
+        return float(res.value), float(res.standard_error), extra
+
+    for phase in ("first", "warm"):
+        del compiled[:]
+        start = time.perf_counter()
+        value, se, extra = call()
+        out[phase] = dict(
+            seconds=time.perf_counter() - start,
+            compilations=len(compiled),
+            value=value,
+            se=se,
+            error=value - exact,
+            **extra,
+        )
+        print(json.dumps(out), flush=True)  # after each phase: a row stopped at its time limit keeps its first answer
+
+
+def nhsde_command():
+    """The ``nhsde`` command of this interpreter's environment (``python -m nhsde.runs`` without one)."""
+    script = pathlib.Path(sys.executable).with_name("nhsde")
+    return [str(script)] if script.exists() else [sys.executable, "-m", "nhsde.runs"]
+
+
+CHILD_SRC = ""
+
+
+def fresh_process(argv, cache="off", timeout=None):
+    """Run ``argv`` in a new process (CPU, compilation cache ``cache``): (wall seconds, rc, stdout, stderr)."""
+    env = dict(os.environ, JAX_PLATFORMS="cpu", NHSDE_COMPILATION_CACHE=str(cache))
+    if CHILD_SRC:  # --src: the children import nhsde from there (e.g. a clean `git archive` of one commit)
+        env["PYTHONPATH"] = CHILD_SRC
+    start = time.perf_counter()
+    try:
+        proc = subprocess.run(argv, capture_output=True, text=True, env=env, timeout=timeout)
+    except subprocess.TimeoutExpired as e:
+        text = [x.decode(errors="replace") if isinstance(x, bytes) else (x or "") for x in (e.stdout, e.stderr)]
+        return time.perf_counter() - start, "timeout", *text
+    return time.perf_counter() - start, proc.returncode, proc.stdout, proc.stderr
+
+
+def api_row(row, timeout):
+    wall, rc, stdout, stderr = fresh_process([sys.executable, __file__, "--child", row], timeout=timeout)
+    lines = [line for line in (stdout or "").splitlines() if line.startswith("{")]
+    if not lines:
+        tail = (stderr or "").strip().splitlines()[-3:]
+        print(f"  {row}: rc {rc} after {wall:.1f} s: {' | '.join(tail)}", flush=True)
+        return dict(row=row, process_seconds=wall, rc=rc, error_tail=tail)
+    out = json.loads(lines[-1])
+    out.update(process_seconds=wall, rc=rc)
+    f = out["first"]
+    w = out.get("warm", dict(seconds=math.nan, compilations=-1))
+    how = f.get("choice") or "{solver} dt={dt:.4g} N={n_paths}".format(**f)
+    print(
+        f"  {row:<32} first {f['seconds']:7.2f} s ({f['compilations']:3d} programs, process {wall:6.1f} s, rc {rc}), "
+        f"warm {w['seconds']:7.2f} s ({w['compilations']} programs); error {f['error']:+.2e} "
+        f"(target {out['rmse']:.2e}, SE {f['se']:.1e}); {how}",
+        flush=True,
+    )
+    return out
+
+
+def cli_row(label, argv, cache, timeout):
+    wall, rc, stdout, stderr = fresh_process(nhsde_command() + argv, cache=cache, timeout=timeout)
+    lines = (stdout or "").strip().splitlines()
+    work = [line for line in lines if line.startswith("work:")]
+    compile_split = [line.rsplit(";", 1)[-1].strip() for line in lines if "of it compiling" in line]
+    print(
+        f"  {label:<32} {wall:7.1f} s (process, rc {rc})"
+        + (f"; {work[-1]}" if work else "")
+        + (f" ({compile_split[-1]})" if compile_split else ""),
+        flush=True,
+    )
+    if rc != 0:
+        print("    " + " | ".join((stderr or "").strip().splitlines()[-3:]), flush=True)
+    compiling = [line for line in lines if "of it compiling" in line]  # to_accuracy's own split of its seconds
+    return dict(
+        label=label, argv=argv, cache=str(cache), seconds=wall, rc=rc, report=compiling, stdout_tail=lines[-12:]
+    )
+
+
+def first_answer(args):
+    """Rows (a)–(d) of the first-answer mode (module docstring); writes the JSON, prints the table."""
+    global CHILD_SRC
+    CHILD_SRC = str(pathlib.Path(args.src).resolve()) if args.src else ""
+    rels = [1e-2] if args.quick else [1e-2, 1e-3]
+    scenes = [s for s in args.scenes.split(",") if s in FIRST_ANSWER_SCENES] if args.scenes_given else None
+    scenes = scenes or (["sleigh"] if args.quick else list(FIRST_ANSWER_SCENES))
+    start = time.perf_counter()
+    revision = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    dirty = subprocess.run(["git", "status", "--short", "src"], capture_output=True, text=True).stdout.strip()
+    machine = dict(
+        cpu_count=os.cpu_count(),
+        platform=platform.platform(),
+        versions=dict(jax=jax.__version__, nhsde=nhsde.__version__),
+        git=revision,
+        src_uncommitted=[] if args.src else dirty.splitlines(),
+        src=args.src or str(pathlib.Path(nhsde.__file__).parents[1]),
+        date=time.strftime("%Y-%m-%d %H:%M %Z"),
+        loadavg_start=os.getloadavg(),
+    )
+    print(f"machine: {machine}", flush=True)
+    OUT.mkdir(exist_ok=True)
+    path = pathlib.Path(args.out) if args.out else OUT / f"first_answer{'_quick' if args.quick else ''}.json"
+    api, cli, cache = [], [], []
+    record = dict(machine=machine, args=vars(args), best_plain={f"{k[0]}:{k[1]:g}": v for k, v in BEST_PLAIN.items()})
+    record.update(to_accuracy_vs_plain=api, cli=cli, cache=cache)
+
+    def save():  # after every row: a run cut short keeps what it measured
+        path.write_text(json.dumps(record, indent=2, default=str))
+
+    def pairs(rel):
+        print(f"(a, b) to_accuracy against the best plain simulate setting at {rel:g}, each a fresh process:")
+        for scene in scenes:
+            for method in ("to_accuracy", "plain"):
+                api.append(api_row(f"{scene}:{rel:g}:{method}", args.row_timeout))
+                save()
+                if method == "to_accuracy" and api[-1]["rc"] not in (0, "timeout"):
+                    # the default coarsest step failed (Chaplygin's ball at b9742d2): the warm mode's h0
+                    api.append(api_row(f"{scene}:{rel:g}:{method}:dt={CASES[scene]()['h0']:g}", args.row_timeout))
+                    save()
+
+    if args.rows:  # only these rows (SCENE:REL:METHOD[:dt=H]), e.g. to complete a run
+        for row in args.rows.split(","):
+            api.append(api_row(row, args.row_timeout))
+            save()
+        record["table"] = first_answer_table(api, cli, cache)
+        save()
+        print("\n" + record["table"] + f"\nwrote {path}")
+        return
+    pairs(rels[0])  # the tighter target last: its rows take longest
+    print("(c) the command, each a fresh process, cache off:", flush=True)
+    cli.append(cli_row("nhsde --relative-rmse 1e-2", CLI_RMSE, "off", args.row_timeout))
+    cli.append(cli_row("nhsde (plain)", CLI_PLAIN, "off", args.row_timeout))
+    save()
+    print("(d) the persistent compilation cache: a new empty folder, then the same command again:", flush=True)
+    jobs = ([] if args.quick else [("--relative-rmse 1e-2", CLI_RMSE)]) + [("main job", MAIN_JOB)]
+    for label, argv in jobs:
+        with tempfile.TemporaryDirectory(prefix="nhsde-cache-") as folder:
+            for state in ("cold", "warm"):
+                cache.append(cli_row(f"{label}, cache {state}", argv, folder, args.row_timeout))
+                save()
+    for rel in rels[1:]:
+        pairs(rel)
+    machine["loadavg_end"] = os.getloadavg()
+    machine["wall_seconds"] = time.perf_counter() - start
+    record["table"] = first_answer_table(api, cli, cache)
+    save()
+    print("\n" + record["table"])
+    print(
+        f"\nload average {machine['loadavg_start']} → {machine['loadavg_end']}, {machine['wall_seconds']:.0f} s in all"
+    )
+    print(f"wrote {path}")
+
+
+def first_answer_table(api, cli, cache):
+    """The markdown table of the first-answer rows: seconds, realised error, ratio."""
+    lines = [
+        "| row | to_accuracy / `--rmse` | plain `simulate` / command | ratio |",
+        "|---|---|---|---:|",
+    ]
+    by_row = {r["row"]: r for r in api}
+
+    def cell(r, phase):
+        if r is None or phase not in r:
+            return f"no answer (rc {r['rc'] if r else '?'}, {r['process_seconds']:.0f} s)" if r else "not run"
+        m = r[phase]
+        what = m.get("choice") or "{solver} dt={dt:.3g} N={n_paths}".format(**m)
+        ref = " vs ref." if r["reference"] else ""
+        return f"{m['seconds']:.2f} s, error {m['error']:+.1e}{ref} ({m['compilations']} programs; {what})"
+
+    for r in api:
+        scene, rel, method, *option = r["row"].split(":")
+        if method != "to_accuracy":
+            continue
+        p = by_row.get(f"{scene}:{rel}:plain")
+        rel = " ".join([rel, *option])
+        for phase, name in (("first", "first answer, fresh process"), ("warm", "warm, same process")):
+            ratio = r[phase]["seconds"] / p[phase]["seconds"] if phase in r and p and phase in p else math.nan
+            lines.append(f"| {scene} {rel} ({name}) | {cell(r, phase)} | {cell(p, phase)} | {ratio:.2f} |")
+    if len(cli) == 2:
+        ratio = cli[0]["seconds"] / cli[1]["seconds"]
+        lines.append(
+            f"| command, chaplygin-sleigh (process, cache off) | {cli[0]['seconds']:.1f} s (rc {cli[0]['rc']}) "
+            f"| {cli[1]['seconds']:.1f} s (rc {cli[1]['rc']}) | {ratio:.2f} |"
+        )
+    for cold, warm in zip(cache[::2], cache[1::2]):
+        lines.append(
+            f"| cache: {cold['label'].rsplit(',', 1)[0]} (warm / cold) "
+            f"| warm {warm['seconds']:.1f} s (rc {warm['rc']}) | cold {cold['seconds']:.1f} s (rc {cold['rc']}) "
+            f"| {warm['seconds'] / cold['seconds']:.2f} |"
+        )
+    return "\n".join(lines)
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer paths, looser targets")
@@ -426,7 +734,25 @@ def main():
     parser.add_argument("--piece-paths", type=int, default=65536, help="MLMC paths per run on level 0")
     parser.add_argument("--reference-paths", type=int, default=2**18)
     parser.add_argument("--out", help="the JSON to write (default results/estimators.json, _quick with --quick)")
+    parser.add_argument(
+        "--first-answer",
+        action="store_true",
+        help="time to first answer: a fresh process per row, compilation included (results/first_answer.json)",
+    )
+    parser.add_argument("--row-timeout", type=float, default=360.0, help="first-answer mode: seconds per process")
+    parser.add_argument(
+        "--src",
+        help="first-answer mode: the children import nhsde from this src/ folder (default the installed one), e.g. "
+        "`git archive HEAD src | tar -x -C /tmp/clean` and --src /tmp/clean/src to measure one commit",
+    )
+    parser.add_argument("--rows", help="first-answer mode: only these rows, SCENE:REL:METHOD[:dt=H],...")
+    parser.add_argument("--child", help=argparse.SUPPRESS)  # one first-answer row, in this fresh process
     args = parser.parse_args()
+    if args.child:
+        return child(args.child)
+    if args.first_answer:
+        args.scenes_given = "--scenes" in sys.argv
+        return first_answer(args)
     args.targets = [3e-2, 1e-2, 3e-3] if args.quick else [3e-2, 1e-2, 3e-3, 1e-3]
     if args.quick:
         args.paths, args.rounds, args.piece_paths, args.reference_paths = 4096, 1, 8192, 2**15
