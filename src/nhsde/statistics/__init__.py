@@ -49,6 +49,7 @@ from ._fokker_planck import (
     stationary_fokker_planck as stationary_fokker_planck,
 )
 from ._multilevel import MultilevelEstimate as MultilevelEstimate, multilevel_monte_carlo as multilevel_monte_carlo
+from ._multilevel_qmc import multilevel_quasi_monte_carlo as multilevel_quasi_monte_carlo
 from ._normal_approximation import (
     NormalApproximation as NormalApproximation,
     normal_approximation as normal_approximation,

@@ -1,0 +1,404 @@
+"""Multilevel randomised quasi-Monte Carlo (Giles & Waterhouse, Radon Ser. Comput. Appl. Math. 8 (2009)).
+
+Levels ``ℓ = 0 … L`` step ``h_ℓ = h₀ 2^{−ℓ}`` as in :mod:`._multilevel`; level ``ℓ`` draws its Wiener paths
+from scrambled Sobol' points through a Brownian bridge over its finest grid (``n_ℓ = (t1 − t0)/h_ℓ`` base
+steps, ``n_ℓ × channels ≤ 21201`` dimensions, :mod:`._qmc`), and solves the fine (``h_ℓ``) and the coarse
+(``2h_ℓ``, each step the sum of two base increments of the same point) on the same points, so that the level
+term ``P_ℓ − P_{ℓ−1}`` is computed per point.  ``R`` independent scramblings per level (keys
+``fold_in(fold_in(key, ℓ), r)``) give ``R`` independent unbiased estimates ``Ŷ_{ℓ,r}`` of the level term, each
+over the points ``0 … N_ℓ − 1`` (a power of two, a net); the level's estimate is their average and its variance
+``V̂_ℓ = s²_r(Ŷ_{ℓ,r})/R``.  A covariance is telescoped as in :mod:`._multilevel`, each term from per-replicate
+means and second moments (:func:`._qmc._combine`, unbiased).
+
+Points per level (Giles & Waterhouse, §3): starting from ``N_ℓ = 64``, double ``N_ℓ`` on the level with the
+largest ``V̂_ℓ/(N_ℓ C_ℓ)`` (the most variance removed per unit of work, as ``V̂_ℓ ∝ 1/N_ℓ`` at worst) until
+``Σ_ℓ V̂_ℓ ≤ ε²/2``; then add a level while the bias estimate of :func:`._multilevel._bias` exceeds ``ε/√2``.
+
+One compiled solve serves every level, point count and scrambling: the ``R`` scramblings share one driver
+(block ``b`` of the run is point block ``b // R`` of scrambling ``b mod R``, so the points ``N … 2N − 1`` of
+every scrambling are the contiguous paths ``NR … 2NR − 1``), its direction numbers padded to the dimension of
+the finest level allowed, and the bridge depth ``log₂ n_ℓ`` is data.  Per-point values are reduced on the host
+into per-scrambling sums, so memory does not grow with ``N_ℓ``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any, ClassVar
+
+import diffrax as dfx
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Int, UInt
+
+from .._brownian import BLOCK, AbstractDriver
+from .._ensemble import Save
+from .._misc import check_key, check_number, check_span, check_steps, fold_key, is_concrete
+from .._options import AbstractSteps, Batching
+from .._solvers import solver_needs
+from .._system import StochasticSystem
+from .._weak import PlatenWeak2
+from ._cost import MAX_LEVELS, level_cost
+from ._estimate import AbstractStatistic, Stopwatch, as_statistic
+from ._multilevel import MultilevelEstimate, _bias
+from ._paths import KEY_PATHS, coupled_paths, coupling_solver, on_device, paths_save, roles_of, safe_sqrt
+from ._qmc import BITS, MAX_DIMENSION, _allowed_solvers, _combine, _ScrambledSobol, scrambled_sobol
+
+__all__ = ["multilevel_quasi_monte_carlo"]
+
+RUN_LIMIT = 2**18
+"""Most paths solved at once: a larger doubling runs in pieces, reduced into sums as they come."""
+
+
+class _LevelSobol(AbstractDriver):
+    """The Wiener driver of one level of multilevel QMC (module): ``R`` scramblings of ``d`` dimensions, lane ``l``
+    of block ``b`` point ``(b // R)·BLOCK + l`` of scrambling ``b mod R``; ``2^log_base`` base steps, as data."""
+
+    v: UInt[Array, "r d 32"]
+    shift: UInt[Array, "r d"]
+    log_base: Int[Array, ""]
+    channels: int = eqx.field(static=True)
+    continuous: ClassVar[bool] = True
+
+    def variance_rate(self):
+        return jnp.ones(())
+
+    def _normals(self, replicate: Array, block: Array, lanes: Array, q: Array, dtype) -> Array:
+        """``Φ⁻¹(u)`` of bridge node ``q`` of every channel, scrambling ``replicate``: ``(len(lanes), m)``."""
+        r, d = self.shift.shape
+        # the scramblings side by side: node q of scrambling r is node r·d/m + q of one long point
+        flat = _ScrambledSobol(self.v.reshape(r * d, BITS), self.shift.reshape(r * d), 1, self.channels)
+        return flat._normals(block, lanes, replicate * (d // self.channels) + q, dtype)
+
+    def _bridge(self, replicate: Array, block: Array, lanes: Array, g: Array, dt: Array) -> Array:
+        """``W`` at grid index ``g`` (as :meth:`._qmc._ScrambledSobol._bridge`, its depth ``log_base`` data)."""
+        levels = self.log_base
+        n_base = jnp.left_shift(jnp.int32(1), levels)
+
+        def normals(q):
+            return self._normals(replicate, block, lanes, q, dt.dtype)
+
+        w_lo = jnp.zeros((lanes.shape[0], self.channels), dt.dtype)
+        w_hi = jnp.sqrt(n_base.astype(dt.dtype) * dt) * normals(jnp.zeros((), jnp.int32))
+
+        def ancestor(level, carry):  # the ancestors of g, coarse to fine
+            lo, w_lo, w_hi = carry
+            half = jnp.right_shift(n_base, level)
+            mid = lo + half
+            q = jnp.left_shift(jnp.int32(1), level - 1) + jnp.right_shift(lo, levels - level + 1)
+            w_mid = 0.5 * (w_lo + w_hi) + jnp.sqrt(0.5 * half.astype(dt.dtype) * dt) * normals(q)
+            left = g < mid
+            return jnp.where(left, lo, mid), jnp.where(left, w_lo, w_mid), jnp.where(left, w_mid, w_hi)
+
+        lo, w_lo, w_hi = jax.lax.fori_loop(1, levels + 1, ancestor, (jnp.zeros((), jnp.int32), w_lo, w_hi))
+        return jnp.where(g == lo, w_lo, w_hi)
+
+    def block_increment(self, key, block, k0, dt, shape, substeps, levy_area):
+        del key  # the scramblings are the randomness; the lanes are Sobol' points
+        if levy_area is not dfx.BrownianIncrement:
+            raise ValueError(
+                f"quasi-Monte Carlo draws Brownian increments only; this solver asks for {levy_area.__name__}."
+            )
+        if shape != (self.channels,):
+            raise ValueError(f"the driver was built for {self.channels} channels; the system has shape {shape}.")
+        r = self.shift.shape[0]
+        block = jnp.asarray(block).astype(jnp.int32)
+        replicate, points = block % r, (block // r).astype(jnp.uint32)
+        lanes = jnp.arange(BLOCK, dtype=jnp.uint32)
+        k0 = jnp.asarray(k0, jnp.int32)
+        g1, g0 = (k0 + 1) * substeps, k0 * substeps
+        return self._bridge(replicate, points, lanes, g1, dt) - self._bridge(replicate, points, lanes, g0, dt)
+
+
+def _host(x) -> Any:
+    """``x`` for the checker: the host (NumPy) values that the estimators' array-generic helpers reduce."""
+    return x
+
+
+def _pick(statistic: AbstractStatistic, names: tuple[str, ...], mean, cov) -> Any:
+    """``statistic``'s entry of host ``mean`` and ``cov`` (or of their variances)."""
+    return statistic.pick(names, mean, cov)
+
+
+class _QmcLevels:
+    """The levels' runs, reduced per scrambling into sums of the values and of their outer products."""
+
+    def __init__(self, system, y0, key, *, t0, t1, h0, solver, save, replicates, dimension, batching):
+        self.system, self.y0, self.key = system, y0, key
+        self.opts = dict(t0=t0, t1=t1, solver=solver, save=save, batching=batching)
+        self.h0, self.replicates, self.dimension = h0, replicates, dimension
+        self.steps0 = round((t1 - t0) / h0)
+        self.points: list[int] = []  # N_ℓ per scrambling
+        self.sums: list[list[np.ndarray]] = []  # level → per solve (R, n, k)
+        self.squares: list[list[np.ndarray]] = []  # level → per solve (R, n, k, k)
+        self.drivers: list[_LevelSobol] = []
+
+    def cost(self, level: int) -> float:
+        return level_cost(self.steps0, level, False)
+
+    def driver(self, level: int) -> _LevelSobol:
+        while len(self.drivers) <= level:
+            ell, m = len(self.drivers), self.system.noise_dim
+            key = fold_key(self.key, ell)
+            scrambled = [scrambled_sobol(fold_key(key, r), self.dimension) for r in range(self.replicates)]
+            v, shift = (jax.device_put(np.stack([np.asarray(s[i]) for s in scrambled])) for i in (0, 1))
+            log_base = jax.device_put(np.asarray((self.steps0 << ell).bit_length() - 1, np.int32))
+            self.drivers.append(_LevelSobol(v, shift, log_base, m))
+        return self.drivers[level]
+
+    def grow(self, level: int, n_points: int) -> None:
+        """Points ``N_ℓ … n_points − 1`` of every scrambling of level ``level`` (contiguous paths, module)."""
+        while len(self.points) <= level:
+            self.points.append(0)
+            self.sums.append([])
+            self.squares.append([])
+        r = self.replicates
+        if n_points * r > KEY_PATHS:
+            raise ValueError(
+                f"level {level}: {n_points} points × {r} scramblings exceed the {KEY_PATHS} paths a run indexes; "
+                "raise rmse."
+            )
+        driven = eqx.tree_at(lambda s: s.noise, self.system, self.driver(level))
+        h = self.h0 / 2**level
+        dts = (h, 2 * h) if level else (h,)
+        first = self.points[level] * r
+        while first < n_points * r:
+            size = min(n_points * r - first, RUN_LIMIT)
+            paths, _ = coupled_paths(
+                driven,
+                self.y0,
+                fold_key(self.key, level),
+                dts=dts,
+                brownian_dt=h,
+                n_paths=size,
+                first_path=first,
+                antithetic=False,
+                **self.opts,
+            )
+            for a, z in enumerate(paths):
+                z = np.asarray(z, np.float64)
+                # path (b·R + r)·BLOCK + lane is point b·BLOCK + lane of scrambling r
+                z = z.reshape(-1, r, BLOCK, *z.shape[1:])
+                total = z.sum(axis=(0, 2))
+                square = np.einsum("brlni,brlnj->rnij", z, z)
+                if a < len(self.sums[level]):
+                    self.sums[level][a] += total
+                    self.squares[level][a] += square
+                else:
+                    self.sums[level].append(total)
+                    self.squares[level].append(square)
+            first += size
+        self.points[level] = n_points
+
+    def moments(self, level: int):
+        """``(mean, cov, mean_var, cov_var)`` of the level's term (the variances those of the estimates)."""
+        n, r = self.points[level], self.replicates
+        weights = (1.0, -1.0) if level else (1.0,)
+        means = [s / n for s in self.sums[level]]
+        seconds = [s / n for s in self.squares[level]]
+        per_mean = sum(w * m for w, m in zip(weights, means))
+        per_cov = sum(w * (s - np.einsum("rni,rnj->rnij", m, m)) for w, m, s in zip(weights, means, seconds))
+        combined = [_combine(_host(m), _host(s)) for m, s in zip(means, seconds)]
+        mean = sum(w * c[0] for w, c in zip(weights, combined))
+        cov = sum(w * c[1] for w, c in zip(weights, combined))
+        return mean, cov, np.var(per_mean, axis=0, ddof=1) / r, np.var(per_cov, axis=0, ddof=1) / r
+
+
+def multilevel_quasi_monte_carlo(
+    system: StochasticSystem,
+    y0,
+    key,
+    *,
+    t1: float,
+    dt: float,
+    statistic,
+    rmse: float | None = None,
+    n_points: Sequence[int] | None = None,
+    t0: float = 0.0,
+    solver="euler",
+    save: Save | None = None,
+    weak_order: float | None = None,
+    replicates: int = 16,
+    max_levels: int = MAX_LEVELS,
+    batching: Batching | None = None,
+) -> MultilevelEstimate:
+    """Multilevel randomised quasi-Monte Carlo estimate of the saved means and covariances (module).
+
+    Arguments as :func:`~nhsde.statistics.multilevel_monte_carlo` (``statistic`` included), and:
+
+    - ``dt``: the coarsest step ``h₀``, a number with ``(t1 − t0)/h₀`` a power of two (the bridge's grid).
+    - ``rmse``: the requested root-mean-square error of ``statistic`` (levels and points chosen adaptively), or
+      ``n_points``: a fixed ``(N_0, …, N_L)`` points per scrambling, powers of two ≥ 64.
+    - ``replicates``: ``R``, the independent scramblings per level (≥ 2; the variances come from their spread).
+
+    Only Wiener drivers, and solvers that need Brownian increments only (Euler, Milstein, Heun, …); levels stop
+    where ``(t1 − t0)/h_ℓ × channels`` would exceed the 21201 dimensions of the direction numbers.
+    ``n_paths_per_level`` counts ``N_ℓ R`` samples, ``level_variances`` are ``V̂_ℓ N_ℓ R`` (per sample, as
+    :class:`MultilevelEstimate`'s) and ``level_costs`` path-steps per sample (the QMC driver's path-step costs
+    more time than the Wiener driver's).
+    """
+    watch = Stopwatch()
+    if not isinstance(system, StochasticSystem):
+        raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
+    if (rmse is None) == (n_points is None):
+        raise TypeError(
+            "multilevel_quasi_monte_carlo needs exactly one of rmse=… (adaptive) or n_points=(N_0, …, N_L)."
+        )
+    if isinstance(dt, AbstractSteps):
+        raise TypeError(
+            f"dt={dt!r}; multilevel quasi-Monte Carlo needs the coarsest step as a number (the levels are fixed "
+            "grids h₀ 2^−ℓ under one Brownian bridge)."
+        )
+    h0 = check_number("dt", dt, positive=True)
+    t0, t1 = check_span(t0, t1)
+    steps0 = check_steps("dt", t1 - t0, h0)
+    if steps0 & (steps0 - 1):
+        raise ValueError(
+            f"dt={dt}: (t1 − t0)/dt = {steps0} base steps; multilevel quasi-Monte Carlo needs a power of two such "
+            f"as {1 << (steps0.bit_length() - 1)} or {1 << steps0.bit_length()} (the Brownian bridge's grid)."
+        )
+    if not system.noise.continuous:
+        raise ValueError(
+            f"system.noise={type(system.noise).__name__} has jumps; multilevel quasi-Monte Carlo needs a Wiener "
+            "driver (nhsde.noise.Wiener)."
+        )
+    needs = solver_needs(coupling_solver(solver), system)
+    if needs.levy_area is not dfx.BrownianIncrement:
+        raise ValueError(
+            f"solver={solver!r} needs {needs.levy_area.__name__}, which quasi-Monte Carlo does not draw; "
+            f"allowed: {', '.join(_allowed_solvers())}, or a diffrax solver that needs Brownian increments only."
+        )
+    m = system.noise_dim
+    if steps0 * m > MAX_DIMENSION:
+        raise ValueError(
+            f"dt={dt}, t1={t1}: {steps0} steps × {m} channels = {steps0 * m} Sobol' dimensions, beyond the "
+            f"{MAX_DIMENSION} of the direction numbers; take a larger dt or a shorter t1 − t0."
+        )
+    replicates = check_number("replicates", replicates, integer=True)
+    if replicates < 2:
+        raise ValueError(f"replicates={replicates}; the level variances need ≥ 2 independent scramblings.")
+    if weak_order is None:
+        alpha = 2 if isinstance(solver, PlatenWeak2) else 1
+    else:
+        alpha = check_number("weak_order", weak_order, positive=True)
+    max_levels = check_number("max_levels", max_levels, integer=True)
+    if max_levels < (1 if rmse is None else 2):
+        raise ValueError(
+            f"max_levels={max_levels}; must be ≥ 1, and ≥ 2 with rmse=… (the bias estimate compares two levels)."
+        )
+    by_dimension = (MAX_DIMENSION // (steps0 * m)).bit_length()  # levels whose grid fits the direction numbers
+    top = min(max_levels, by_dimension)
+    if rmse is not None and top < 2:
+        raise ValueError(
+            f"dt={dt}: the second level's {2 * steps0} steps × {m} channels exceed the {MAX_DIMENSION} Sobol' "
+            "dimensions, and rmse=… needs two levels; take a larger dt or a shorter t1 − t0."
+        )
+    statistic = as_statistic(statistic)
+    save = paths_save(save, steps0, statistic.names)
+    assert save.names is not None
+    statistic.check(save.names)
+    key = check_key(key)
+    if n_points is not None:
+        if not isinstance(n_points, Sequence) or isinstance(n_points, str):
+            raise TypeError(f"n_points={n_points!r}; expected one count per level, (N_0, …, N_L).")
+        counts = [check_number("n_points", n, integer=True) for n in n_points]
+        if not counts or any(n < BLOCK or n & (n - 1) for n in counts):
+            raise ValueError(
+                f"n_points={n_points!r}; expected one power of two ≥ {BLOCK} per level (the points of a "
+                "scrambling form a net)."
+            )
+        if len(counts) > by_dimension:
+            raise ValueError(
+                f"n_points={n_points!r}: {len(counts)} levels, but only {by_dimension} fit the {MAX_DIMENSION} "
+                f"Sobol' dimensions at dt={dt} with {m} channels."
+            )
+        top = len(counts)
+    dimension = (steps0 << (top - 1)) * m
+    levels = _QmcLevels(
+        system,
+        y0,
+        key,
+        t0=t0,
+        t1=t1,
+        h0=h0,
+        solver=solver,
+        save=save,
+        replicates=replicates,
+        dimension=dimension,
+        batching=batching,
+    )
+    if n_points is not None:
+        for level, n in enumerate(counts):
+            levels.grow(level, n)
+        moments = [levels.moments(level) for level in range(len(counts))]
+    else:
+        eps = check_number("rmse", rmse, positive=True)
+        if not is_concrete(system, y0):
+            raise TypeError("rmse=…: choosing the levels needs concrete parameters, not traced ones.")
+        moments = _adapt(levels, eps, alpha, top, max_levels, statistic, save.names)
+
+    n_levels = len(moments)
+    samples = [levels.points[level] * replicates for level in range(n_levels)]
+    mean, cov, mean_var, cov_var = (np.sum(np.stack(parts), axis=0) for parts in zip(*moments, strict=True))
+    names = save.names
+    level_means = np.stack([_pick(statistic, names, mm[0], mm[1]) for mm in moments])
+    level_vars = np.stack([_pick(statistic, names, mm[2], mm[3]) * n for mm, n in zip(moments, samples)])
+    level_costs = tuple(levels.cost(level) for level in range(n_levels))
+    fields: dict[str, Any] = dict(
+        ts=np.linspace(t0, t1, mean.shape[0]),
+        mean=mean,
+        cov=cov,
+        mean_se=safe_sqrt(mean_var),
+        cov_se=safe_sqrt(cov_var),
+        n_paths=jax.device_put(np.asarray(sum(samples))),
+        names=names,
+        roles=roles_of(system, names),
+        level_means=level_means,
+        level_variances=level_vars,
+        bias=_bias(level_means, alpha),
+        n_paths_per_level=tuple(samples),
+        level_costs=level_costs,
+        dt=h0,
+        derivatives=None,
+        cost=watch.cost(sum(n * c for n, c in zip(samples, level_costs))),
+        statistic=statistic,
+    )
+    return on_device(MultilevelEstimate(**fields), jnp.asarray(y0).dtype)
+
+
+def _adapt(
+    levels: _QmcLevels, eps: float, alpha: float, top: int, max_levels: int, statistic: AbstractStatistic, names
+):
+    """Giles & Waterhouse (2009), §3: double the points where ``V̂_ℓ/(N_ℓ C_ℓ)`` is largest until ``Σ V̂_ℓ ≤ ε²/2``,
+    add levels until the bias estimate is ``≤ ε/√2``; returns the moments of each level."""
+    n_levels = min(3, top)
+    for level in range(n_levels):
+        levels.grow(level, BLOCK)
+    moments = [levels.moments(level) for level in range(n_levels)]
+    while True:
+        variances = [float(_pick(statistic, names, mm[2], mm[3])) for mm in moments]
+        while sum(variances) > eps**2 / 2:
+            worst = max(range(n_levels), key=lambda ell: variances[ell] / (levels.points[ell] * levels.cost(ell)))
+            levels.grow(worst, 2 * levels.points[worst])
+            moments[worst] = levels.moments(worst)
+            variances[worst] = float(_pick(statistic, names, moments[worst][2], moments[worst][3]))
+        means = np.stack([_pick(statistic, names, mm[0], mm[1]) for mm in moments])
+        bias = float(_bias(means, alpha))
+        if bias <= eps / math.sqrt(2):
+            return moments
+        if n_levels >= top:
+            limit = (
+                f"max_levels={max_levels}: {top} levels"
+                if top == max_levels
+                else f"dt={levels.h0}: {top} levels fill the {MAX_DIMENSION} Sobol' dimensions, and after them"
+            )
+            raise ValueError(
+                f"{limit} the bias estimate {bias:.3g} is still above rmse/√2 = {eps / math.sqrt(2):.3g}; raise "
+                f"max_levels or rmse, or check weak_order={alpha}."
+            )
+        levels.grow(n_levels, BLOCK)
+        moments.append(levels.moments(n_levels))
+        n_levels += 1
