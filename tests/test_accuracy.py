@@ -43,7 +43,7 @@ def test_reaches_the_requested_rmse_on_the_ball():
     lists plain, extrapolated and multilevel Monte Carlo, each with a finite cost."""
     eps = 0.08 * K_XX
     runs = [to_accuracy(BALL.build(), Y0, jax.random.key(10 + r), rmse=eps, **FAST) for r in range(4)]
-    errors = np.array([r.value - K_XX for r in runs])
+    errors = np.array([r.value()[0] - K_XX for r in runs])
     bound = math.sqrt(scipy.stats.chi2.ppf(0.99, len(runs)) / len(runs))
     assert np.sqrt(np.mean(errors**2)) <= bound * eps, (errors / eps, [r.choice for r in runs])
     r = runs[0]
@@ -52,11 +52,15 @@ def test_reaches_the_requested_rmse_on_the_ball():
     assert all(math.isfinite(a.cost) and a.cost > 0 for a in r.alternatives)
     chosen = next(a for a in r.alternatives if a.name == r.choice)
     assert chosen.cost == min(a.cost for a in r.alternatives)
-    assert r.work > r.pilot_work > 0 and r.estimated_rmse <= 1.5 * eps
+    assert r.cost.path_steps > r.pilot_cost.path_steps > 0 and r.estimated_rmse <= 1.5 * eps
     # honest accounting: the work done is counted, within 2× of the prediction; compile time is part of the seconds
-    assert r.work == r.pilot_work + r.run_work and r.predicted_work / 2 <= r.run_work <= 2 * r.predicted_work
-    assert 0 <= r.compile_seconds <= r.seconds and 0 < r.run_seconds <= r.seconds and math.isnan(r.predicted_seconds)
-    assert f"measured {r.run_work:.3g} in " in r.report() and "s of it compiling" in r.report()
+    cost, run, predicted = r.cost, r.run_cost, r.predicted
+    assert cost.path_steps == r.pilot_cost.path_steps + run.path_steps
+    assert predicted.path_steps / 2 <= run.path_steps <= 2 * predicted.path_steps
+    assert (
+        0 <= cost.compile_seconds <= cost.seconds and 0 < run.seconds <= cost.seconds and math.isnan(predicted.seconds)
+    )
+    assert f"measured {run.path_steps:.3g} in " in r.report() and "s of it compiling" in r.report()
     text = str(r)
     assert "chosen: " + r.choice in text and "multilevel, euler" in text
 
@@ -66,13 +70,10 @@ def test_derivatives_with_standard_errors_on_the_ball():
     closed form's derivatives (``jax.jacfwd`` of ``ball_covariances``), and the report prints them."""
     exact = jax.jacfwd(lambda th: ball_covariances(jnp.float64(1.0), th[0], th[1], DELTA)[0])(jnp.array([1.0, 1.0]))
     r = to_accuracy(BALL.build(), Y0, jax.random.key(20), rmse=0.08 * K_XX, wrt=("eps", "nu"), **FAST)
-    assert r.wrt == ("eps", "nu") and r.derivative.shape == r.derivative_se.shape == (2,)
-    assert np.all(r.derivative_se > 0) and np.all(np.abs(r.derivative - np.asarray(exact)) <= 4 * r.derivative_se), (
-        r.derivative,
-        r.derivative_se,
-        exact,
-    )
-    assert f"d/deps = {r.derivative[0]:.6g} ± " in r.report()
+    d, d_se = r.derivative()
+    assert r.wrt == ("eps", "nu") and d.shape == d_se.shape == (2,)
+    assert np.all(d_se > 0) and np.all(np.abs(d - np.asarray(exact)) <= 4 * d_se), (d, d_se, exact)
+    assert f"d/deps = {d[0]:.6g} ± " in r.report()
 
 
 def test_quasi_monte_carlo_is_priced_and_reaches_the_target_on_the_ball():
@@ -86,11 +87,13 @@ def test_quasi_monte_carlo_is_priced_and_reaches_the_target_on_the_ball():
     r = to_accuracy(BALL.build(), Y0, jax.random.key(20), rmse=eps, wrt=wrt, **(FAST | dict(quasi_monte_carlo=True)))
     qmc = next(a for a in r.alternatives if a.name == "quasi-Monte Carlo, euler")
     assert math.isfinite(qmc.cost) and qmc.cost > 0 and qmc.run is not None, r.report()
-    assert "κ = " in qmc.note and qmc.pilot_work > 0 and r.pilot_work >= r.pilot[0].work + qmc.pilot_work
+    assert "κ = " in qmc.note and qmc.pilot_work > 0 and r.pilot_cost.path_steps >= r.pilot[0].work + qmc.pilot_work
     assert qmc.n_paths[0] % 16 == 0 and qmc.n_paths[0] // 16 >= 64 and (qmc.n_paths[0] // 16).bit_count() == 1
     assert (1.0 / qmc.dt).is_integer() and int(1.0 / qmc.dt).bit_count() == 1
     assert "quasi-Monte Carlo, euler" in r.report()
-    value, se, bias, work, result = qmc.run()
+    result, bias = qmc.run()
+    value, se = result.value(r.statistic)
+    work = result.cost.path_steps
     assert isinstance(result, QuasiMonteCarloEstimate) and result.replicates == 16
     # the work done is counted (its path-steps), not the prediction (in Euler path-steps, κ each)
     assert work == int(result.n_paths) * round(1.0 / qmc.dt) == pytest.approx(qmc.cost / qmc.kappa) and bias == qmc.bias
@@ -112,14 +115,14 @@ def test_quasi_monte_carlo_does_not_apply_off_a_power_of_two():
     qmc = next(a for a in r.alternatives if a.name == "quasi-Monte Carlo, euler")
     assert qmc.cost == math.inf and qmc.run is None and qmc.note.startswith("does not apply: "), qmc
     assert "not a power of two" in qmc.note and "does not apply" in r.report()
-    assert r.choice != qmc.name and abs(r.value - K_XX) <= 3 * eps
+    assert r.choice != qmc.name and abs(r.value()[0] - K_XX) <= 3 * eps
 
 
 def test_relative_rmse_and_the_budget_guard():
     system = BALL.build()
     r = to_accuracy(system, Y0, jax.random.key(1), relative_rmse=0.1, **FAST)
     assert r.rmse == pytest.approx(0.1 * abs(r.pilot[0].values[-1]))
-    assert r.wrt == () and r.derivative.shape == r.derivative_se.shape == (0,) and "d/d" not in r.report()
+    assert r.wrt == () and r.derivative()[0].shape == r.derivative()[1].shape == (0,) and "d/d" not in r.report()
     with pytest.raises(ValueError, match="max_path_steps="):
         to_accuracy(system, Y0, jax.random.key(1), rmse=1e-4, max_path_steps=1e6, **FAST)
     with pytest.raises(ValueError, match="relative_rmse="):  # the mean of x is 0 from rest
@@ -227,7 +230,7 @@ def test_every_alternative_on_the_ball():
     r = to_accuracy(BALL.build(), Y0, jax.random.key(3), t1=1.0, statistic=("cov", "x", "x"), rmse=eps)
     assert len(r.alternatives) == 14 and all(math.isfinite(a.cost) for a in r.alternatives), r.report()
     assert {p.solver for p in r.pilot} == {"euler", "weak2-gaussian"}
-    assert r.choice == "control variate, euler" and abs(r.value - K_XX) <= 3 * eps
+    assert r.choice == "control variate, euler" and abs(r.value()[0] - K_XX) <= 3 * eps
 
 
 def test_huge_targets_get_an_answer_and_impossible_ones_a_clear_refusal():
@@ -235,15 +238,15 @@ def test_huge_targets_get_an_answer_and_impossible_ones_a_clear_refusal():
     memory is refused before it runs, with the size, by ``to_accuracy`` and ``multilevel_monte_carlo``."""
     system, key = BALL.build(), jax.random.key(4)
     r = to_accuracy(system, Y0, key, rmse=1e300, **FAST)
-    assert math.isfinite(r.value) and r.run_work <= 64 * 4 * 3, r.report()
-    m = multilevel_monte_carlo(system, Y0, key, rmse=1e300, t1=1.0, dt=0.25, target=("cov", "x", "x"))
-    assert math.isfinite(float(m.value)) and len(m.n_paths_per_level) == 3
+    assert math.isfinite(r.value()[0]) and r.run_cost.path_steps <= 64 * 4 * 3, r.report()
+    m = multilevel_monte_carlo(system, Y0, key, rmse=1e300, t1=1.0, dt=0.25, statistic=("cov", "x", "x"))
+    assert math.isfinite(float(m.value()[0])) and len(m.n_paths_per_level) == 3
     with pytest.raises(ValueError, match=r"^rmse=1e-08: the cheapest way, .* GiB at their peak, more than the"):
         to_accuracy(system, Y0, key, rmse=1e-8, **FAST)
     with pytest.raises(ValueError, match=r"^rmse=1e-08: the samples per level .* GiB at their peak"):
-        multilevel_monte_carlo(system, Y0, key, rmse=1e-8, t1=1.0, dt=0.25, target=("cov", "x", "x"))
+        multilevel_monte_carlo(system, Y0, key, rmse=1e-8, t1=1.0, dt=0.25, statistic=("cov", "x", "x"))
     with pytest.raises(ValueError, match=r"^n_paths=\(1000000000000,\) keeps per-path values of"):
-        multilevel_monte_carlo(system, Y0, key, n_paths=(10**12,), t1=1.0, dt=0.25, target=("cov", "x", "x"))
+        multilevel_monte_carlo(system, Y0, key, n_paths=(10**12,), t1=1.0, dt=0.25, statistic=("cov", "x", "x"))
     config = RunConfig.from_dict(
         dict(
             scene="ball-on-vibrating-plane",
@@ -264,6 +267,6 @@ def test_reaches_the_target_from_a_coarsest_step_above_one():
     exact = float(ball_covariances(jnp.float64(10.0), 0.1, 1.0, DELTA)[0])
     args = dict(t1=10.0, statistic=("cov", "x", "x"), relative_rmse=0.05, control_variate=False)
     runs = [to_accuracy(scene.build(), Y0, jax.random.key(100 + r), quasi_monte_carlo=False, **args) for r in range(20)]
-    errors = np.array([(r.value - exact) / r.rmse for r in runs])
+    errors = np.array([(r.value()[0] - exact) / r.rmse for r in runs])
     assert all(r.pilot[0].dts[0] == 2.5 for r in runs)
     assert np.sqrt(np.mean(errors**2)) <= math.sqrt(scipy.stats.chi2.ppf(0.99, 20) / 20), (errors, runs[0].report())

@@ -21,7 +21,9 @@ system, y0, key = scene.build(), scene.initial_state(), jax.random.key(0)
 del compiled[:]  # the scene and the key are the user's
 """
 
-COUNT = PRELUDE + r"""
+COUNT = (
+    PRELUDE
+    + r"""
 counts = {}
 for label, n_paths, dt in [("first", 256, 1 / 16), ("n_paths", 512, 1 / 16), ("dt", 512, 1 / 32)]:
     del compiled[:]
@@ -29,6 +31,7 @@ for label, n_paths, dt in [("first", 256, 1 / 16), ("n_paths", 512, 1 / 16), ("d
     counts[label] = list(compiled)
 print(json.dumps(counts))
 """
+)
 
 
 def counted(script: str):
@@ -46,11 +49,13 @@ def test_simulate_compiles_few_programs():
     assert counts["dt"] == [], counts["dt"]
 
 
-ESTIMATOR = PRELUDE + r"""
+ESTIMATOR = (
+    PRELUDE
+    + r"""
 import sys
 if sys.argv[1] == "multilevel":
     r = nhsde.statistics.multilevel_monte_carlo(
-        system, y0, key, t1=1.0, dt=0.25, target=("mean", "energy"), rmse=1e-2, save=nhsde.Save(names=("energy",))
+        system, y0, key, t1=1.0, dt=0.25, statistic=("mean", "energy"), rmse=1e-2, save=nhsde.Save(names=("energy",))
     )
     levels = len(r.n_paths_per_level)
 else:
@@ -58,6 +63,7 @@ else:
     levels = r.choice
 print(json.dumps({"compiled": list(compiled), "levels": levels}))
 """
+)
 
 
 def test_first_multilevel_monte_carlo_compiles_few_programs():

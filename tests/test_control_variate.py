@@ -50,7 +50,7 @@ def test_linear_system_is_its_own_control_and_the_estimate_is_exact(ball_estimat
     # the residual Y − C is rounding: its SE, from Var Y − 2β Cov + β² Var C, is at most √(rounding) of the plain one
     assert np.all(np.asarray(est.cov_se[1:]) <= 1e-6 * np.asarray(est.plain.cov_se[1:]))
     assert np.all(np.asarray(est.variance_reduction.cov[1:]) > 1e12)
-    assert est.cost == 2 * est.plain_cost == 2 * 256 * 16
+    assert est.cost.path_steps == 2 * est.plain.cost.path_steps == 2 * 256 * 16
 
 
 def test_reference_linearisation_of_a_linear_system_is_exact():

@@ -82,12 +82,13 @@ def test_one_level_is_plain_monte_carlo_on_the_same_paths(solver):
     system, key = BALL.build(), jax.random.key(4)
     save = nhsde.Save(names=("x",), n=2)
     est = multilevel_monte_carlo(
-        system, Y0, key, t1=1.0, dt=0.25, n_paths=(1024,), target=("cov", "x", "x"), solver=solver, save=save
+        system, Y0, key, t1=1.0, dt=0.25, n_paths=(1024,), statistic=("cov", "x", "x"), solver=solver, save=save
     )
     sub = jax.random.fold_in(key, 0)
     ens = nhsde.simulate(system, Y0, sub, n_paths=1024, t1=1.0, dt=0.25, solver=solver, save=save)
-    np.testing.assert_allclose(float(est.value), float(ens.cov[-1, 0, 0]), rtol=1e-10)
-    np.testing.assert_allclose(float(est.standard_error), float(ens.cov_se[-1, 0, 0]), rtol=1e-6)
+    value, se = est.value()
+    np.testing.assert_allclose(float(value), float(ens.cov[-1, 0, 0]), rtol=1e-10)
+    np.testing.assert_allclose(float(se), float(ens.cov_se[-1, 0, 0]), rtol=1e-6)
 
 
 def realised_rmse_and_cost(targets, repetitions, confidence=0.99, piece_paths=256):
@@ -107,14 +108,14 @@ def realised_rmse_and_cost(targets, repetitions, confidence=0.99, piece_paths=25
                 t1=1.0,
                 dt=0.25,
                 rmse=eps,
-                target=("cov", "x", "x"),
+                statistic=("cov", "x", "x"),
                 piece_paths=piece_paths,
             )
             for r in range(repetitions)
         ]
-        realised = np.sqrt(np.mean([(float(run.value) - exact) ** 2 for run in runs]))
+        realised = np.sqrt(np.mean([(float(run.value()[0]) - exact) ** 2 for run in runs]))
         assert realised <= bound * eps, (relative, realised / eps, bound)
-        costs.append(np.mean([run.cost for run in runs]))
+        costs.append(np.mean([run.cost.path_steps for run in runs]))
     return np.array(costs)
 
 
@@ -154,11 +155,11 @@ def test_gradients_through_multilevel_agree_with_the_closed_form():
 
     Two levels (h = 1/8, 1/16) of the weak-order-2 solver: its bias there is far below the standard error.
     """
-    args = dict(t1=1.0, dt=0.125, target=("cov", "x", "x"), solver=nhsde.PlatenWeak2(increments="gaussian"))
+    args = dict(t1=1.0, dt=0.125, statistic=("cov", "x", "x"), solver=nhsde.PlatenWeak2(increments="gaussian"))
 
     def estimate(p, key):
         system = BALL.build().replace_params(eps=p[0], nu=p[1])
-        return multilevel_monte_carlo(system, Y0, key, n_paths=(8192, 2048), **args).value
+        return multilevel_monte_carlo(system, Y0, key, n_paths=(8192, 2048), **args).value()[0]
 
     runs = 8
     grads = np.array([jax.jacfwd(estimate)(jnp.array([1.0, 1.0]), jax.random.key(10 + k)) for k in range(runs)])
@@ -170,27 +171,28 @@ def test_gradients_through_multilevel_agree_with_the_closed_form():
 def test_multilevel_reports_its_gradients_with_standard_errors():
     """wrt=('eps', 'nu'): the per-path tangents of every level give jacfwd's gradient of the same estimate, and a
     standard error within which (4 SE) the analytic ∂K_xx(1)/∂(ε, ν) lies."""
-    args = dict(t1=1.0, dt=0.125, target=("cov", "x", "x"), solver=nhsde.PlatenWeak2(increments="gaussian"))
+    args = dict(t1=1.0, dt=0.125, statistic=("cov", "x", "x"), solver=nhsde.PlatenWeak2(increments="gaussian"))
     key, counts = jax.random.key(10), (8192, 2048)
     est = multilevel_monte_carlo(BALL.build(), Y0, key, n_paths=counts, wrt=("eps", "nu"), **args)
 
     def value(p):
         system = BALL.build().replace_params(eps=p[0], nu=p[1])
-        return multilevel_monte_carlo(system, Y0, key, n_paths=counts, **args).value
+        return multilevel_monte_carlo(system, Y0, key, n_paths=counts, **args).value()[0]
 
-    np.testing.assert_allclose(np.asarray(est.d_value), np.asarray(jax.jacfwd(value)(jnp.array([1.0, 1.0]))), rtol=1e-9)
+    d, d_se = est.derivative()
+    np.testing.assert_allclose(np.asarray(d), np.asarray(jax.jacfwd(value)(jnp.array([1.0, 1.0]))), rtol=1e-9)
     exact = np.array(jax.grad(lambda e, n: ball_covariances(jnp.float64(1.0), e, n, DELTA)[0], (0, 1))(1.0, 1.0))
-    z = (np.asarray(est.d_value) - exact) / np.asarray(est.d_value_se)
-    assert np.all(np.abs(z) <= 4), (est.d_value, exact, est.d_value_se)
+    z = (np.asarray(d) - exact) / np.asarray(d_se)
+    assert np.all(np.abs(z) <= 4), (d, exact, d_se)
 
 
 def test_bad_input_raises_naming_the_argument():
     system = BALL.build()
-    base = dict(t1=1.0, dt=0.25, target=("cov", "x", "x"))
+    base = dict(t1=1.0, dt=0.25, statistic=("cov", "x", "x"))
     for rmse in (0.0, -1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="rmse="):
             multilevel_monte_carlo(system, Y0, jax.random.key(0), rmse=rmse, **base)
-    with pytest.raises(ValueError, match="target="):
+    with pytest.raises(ValueError, match="statistic="):
         multilevel_monte_carlo(
             system,
             Y0,
@@ -198,12 +200,12 @@ def test_bad_input_raises_naming_the_argument():
             rmse=0.1,
             t1=1.0,
             dt=0.25,
-            target=("mean", "y"),
+            statistic=("mean", "y"),
             save=nhsde.Save(names=("x",)),
         )
     with pytest.raises(ValueError, match="steps="):
         multilevel_monte_carlo(
-            system, Y0, jax.random.key(0), rmse=0.1, t1=1.0, steps=nhsde.AdaptiveSteps(0.25), target=("mean", "x")
+            system, Y0, jax.random.key(0), rmse=0.1, t1=1.0, steps=nhsde.AdaptiveSteps(0.25), statistic=("mean", "x")
         )
     with pytest.raises(TypeError, match="rmse"):
         multilevel_monte_carlo(system, Y0, jax.random.key(0), rmse=0.1, n_paths=(64,), **base)
@@ -226,14 +228,14 @@ def test_bad_spans_and_level_counts_are_refused_before_any_solve():
         calls = [
             lambda: extrapolate(system, Y0, key, n_paths=64, t1=t1, dt=0.25),
             lambda: quasi_monte_carlo(system, Y0, key, n_paths=64, t1=t1, dt=0.25),
-            lambda: multilevel_monte_carlo(system, Y0, key, rmse=0.1, t1=t1, dt=0.25, target=target),
+            lambda: multilevel_monte_carlo(system, Y0, key, rmse=0.1, t1=t1, dt=0.25, statistic=target),
             lambda: control_variate(system, Y0, key, n_paths=64, t1=t1, dt=0.25),
             lambda: to_accuracy(system, Y0, key, rmse=0.1, t1=t1, dt=0.25, statistic=target),
         ]
         for call in calls:
             with pytest.raises(ValueError, match=f"^t1={t1}; must be"):
                 call()
-    base = dict(t1=1.0, dt=0.25, target=target)
+    base = dict(t1=1.0, dt=0.25, statistic=target)
     with pytest.raises(TypeError, match=r"n_paths=256; expected one count per level.*\(256,\) \* 3"):
         multilevel_monte_carlo(system, Y0, key, n_paths=256, **base)
     for kwargs in (dict(n_paths=(64,), max_levels=0), dict(rmse=0.1, max_levels=1), dict(rmse=0.1, max_levels=-2)):

@@ -391,7 +391,7 @@ _DAMPED = -1e-3
 
 
 @eqx.filter_jit
-def _linear_modes(linear_drift: Callable, needs: SolverNeeds, params, dt):
+def _linear_modes(linear_drift: Callable | None, needs: SolverNeeds, params, dt):
     """``(unstable, variance factor, largest gain)`` of the solver on the declared linear drift ``A``.
 
     Per eigenvalue ``λ = x + iy`` of ``A``: ``R(λh)`` is the solver's amplification on
@@ -401,7 +401,7 @@ def _linear_modes(linear_drift: Callable, needs: SolverNeeds, params, dt):
     one step adds, against the exact ``1/(2|x|)``; the factor returned is the ratio furthest
     from 1 (Euler–Maruyama on a real ``λ``: ``1/(1 − |λ|h/2)``, 2× at the ball's ``ε·dt = 1/2``).
     """
-    a = linear_drift(cast_floats(params, dt.dtype)).astype(dt.dtype)  # the system's declared linear drift
+    a = cast(Callable, linear_drift)(cast_floats(params, dt.dtype)).astype(dt.dtype)  # the declared linear drift
     lams = jnp.linalg.eigvals(a)
     zero = jnp.zeros((2,), dt.dtype)
 

@@ -30,7 +30,7 @@ from ._simulate import MIN_PATHS, simulate
 from ._system import StochasticSystem
 from .scenes import AbstractScene
 from .statistics import moment_sensitivities
-from .statistics._accuracy import check_statistic
+from .statistics._estimate import as_statistic
 from .statistics._sensitivities import check_wrt
 
 __all__ = ["sweep"]
@@ -82,7 +82,7 @@ def sweep(
     key,
     n_paths: int,
     t1: float,
-    statistic: tuple[str, ...] | None = None,
+    statistic=None,
     wrt: Sequence[str] | None = None,
     y0=None,
     dt: float | None = None,
@@ -102,7 +102,7 @@ def sweep(
         grid: parameter name → values, e.g. ``{"eps": [0.5, 1, 2], "nu": [0.5, 1]}``: the grid is their
             Cartesian product, a dimension of the result per name, in this order.
         key, n_paths, t0, t1, dt, solver, steps, save: as for :func:`~nhsde.simulate`, the same at every point.
-        statistic: ``('mean', a)`` or ``('cov', a, b)`` at ``t1`` (as for
+        statistic: ``Mean(a)`` or ``Covariance(a, b)`` (or ``('mean', a)``, ``('cov', a, b)``) at ``t1`` (as for
             :func:`~nhsde.statistics.to_accuracy`): adds ``value``, ``value_se`` and their derivatives over the grid.
         wrt: parameters to differentiate in (default the grid's; ``()`` for none), pathwise, with standard errors.
         y0: the initial state (default the scene's).
@@ -177,7 +177,8 @@ def sweep(
     assert shapes is not None
     saved, roles = shapes.names, shapes.roles
     if statistic is not None:
-        kind, i, j = check_statistic(statistic, saved)
+        statistic = as_statistic(statistic)
+        statistic.check(saved)
 
     batch = len(points) if batch is None else int(batch)
     if batch < 1:
@@ -232,19 +233,17 @@ def sweep(
                 data[f"d_{stat}_d_{q}"] = (dims, per_point(value[:, a]), {"long_name": long_name})
                 data[f"d_{stat}_d_{q}_se"] = (dims, per_point(se[:, a]), {"long_name": "its standard error"})
     if statistic is not None:
-        pick = {"mean": lambda v: v[:, -1, i], "cov": lambda v: v[:, -1, i, j]}[kind]
-        moment = {"mean": (mean, mean_se), "cov": (cov, cov_se)}[kind]
-        label = " ".join(statistic)
-        data["value"] = (grid_dims, per_point(pick(moment[0])), {"long_name": f"{label} at t1"})
-        data["value_se"] = (grid_dims, per_point(pick(moment[1])), {"long_name": "its standard error"})
-        for q in wrt:
-            d = data[f"d_{kind}_d_{q}"][1].reshape((-1,) + data[f"d_{kind}_d_{q}"][1].shape[len(shape) :])
-            d_se = data[f"d_{kind}_d_{q}_se"][1].reshape(d.shape)
-            data[f"d_value_d_{q}"] = (grid_dims, per_point(pick(d)), {"long_name": f"derivative of {label} in {q}"})
-            data[f"d_value_d_{q}_se"] = (grid_dims, per_point(pick(d_se)), {"long_name": "its standard error"})
+        pick = statistic.pick
+        label = str(statistic)
+        data["value"] = (grid_dims, per_point(pick(saved, mean, cov)), {"long_name": f"{label} at t1"})
+        data["value_se"] = (grid_dims, per_point(pick(saved, mean_se, cov_se)), {"long_name": "its standard error"})
+        for a, q in enumerate(wrt):
+            d, d_se = pick(saved, d_mean[:, a], d_cov[:, a]), pick(saved, d_mean_se[:, a], d_cov_se[:, a])
+            data[f"d_value_d_{q}"] = (grid_dims, per_point(d), {"long_name": f"derivative of {label} in {q}"})
+            data[f"d_value_d_{q}_se"] = (grid_dims, per_point(d_se), {"long_name": "its standard error"})
     fixed = {row[0]: getattr(system.params, row[0]) for row in system.params.describe()}
     attrs = {
-        "statistic": "" if statistic is None else " ".join(statistic),
+        "statistic": "" if statistic is None else str(statistic),
         "grid": json.dumps(list(names)),
         "wrt": json.dumps(list(wrt)),
         "parameters": json.dumps({k: float(v) for k, v in fixed.items() if np.ndim(v) == 0 and k not in names}),

@@ -276,16 +276,16 @@ def _run_accuracy(config, built, out: Path | None = None) -> int:
     )
     print(result.report())
     print(
-        f"\n{label} = {_fmt(result.value, result.standard_error)}  (mean ± standard error; bias estimate "
+        f"\n{label} = {_fmt(*result.value())}  (mean ± standard error; bias estimate "
         f"{result.bias:.2g}; target rmse {result.rmse:.3g}, estimated {result.estimated_rmse:.3g})"
     )
-    for q, value, se in zip(result.wrt, result.derivative, result.derivative_se, strict=True):
+    for q, value, se in zip(result.wrt, *result.derivative(), strict=True):
         print(f"d{label}/d{q} = {_fmt(value, se)}  (pathwise, by forward mode, on the same paths)")
     if len(wrt) == 1:
         print(f"d{label}/dnu: does not exist at nu = 0")
     print(
-        f"work: {result.work:.4g} path-steps ({result.pilot_work:.4g} in pilots), {result.seconds:.1f} s; "
-        f"by {result.choice}"
+        f"work: {result.cost.path_steps:.4g} path-steps ({result.pilot_cost.path_steps:.4g} in pilots), "
+        f"{result.cost.seconds:.1f} s ({result.cost.compile_seconds:.1f} s compiling); by {result.choice}"
     )
     if d["scene"] == "ball-on-vibrating-plane" and statistic[0] == "cov":
         p = built.system.params
@@ -315,18 +315,18 @@ def _write_estimate(out: Path, config, statistic: str, result) -> None:
         "parameters": config.parameters(),
         "statistic": statistic,
         "t": config.data["solver"]["t1"],
-        "value": float(result.value),
-        "se": float(result.standard_error),
+        "value": result.value()[0],
+        "se": result.value()[1],
         "bias": float(result.bias),
         "rmse_target": float(result.rmse),
         "rmse_estimated": float(result.estimated_rmse),
         "derivatives": {
-            q: {"value": float(v), "se": float(e)}
-            for q, v, e in zip(result.wrt, result.derivative, result.derivative_se, strict=True)
+            q: {"value": float(v), "se": float(e)} for q, v, e in zip(result.wrt, *result.derivative(), strict=True)
         },
-        "work_path_steps": float(result.work),
-        "pilot_work_path_steps": float(result.pilot_work),
-        "seconds": float(result.seconds),
+        "work_path_steps": result.cost.path_steps,
+        "pilot_work_path_steps": result.pilot_cost.path_steps,
+        "seconds": result.cost.seconds,
+        "compile_seconds": result.cost.compile_seconds,
         "estimator": str(result.choice),
         **provenance(config),
     }

@@ -37,12 +37,16 @@ from ._drift import (
     stationary_moments as stationary_moments,
     systematic_drift as systematic_drift,
 )
-from ._extrapolation import (
+from ._estimate import (
+    AbstractEstimate as AbstractEstimate,
+    AbstractStatistic as AbstractStatistic,
+    Cost as Cost,
+    Covariance as Covariance,
     Derivatives as Derivatives,
-    Estimate as Estimate,
-    Extrapolation as Extrapolation,
-    extrapolate as extrapolate,
+    Mean as Mean,
+    MonteCarloEstimate as MonteCarloEstimate,
 )
+from ._extrapolation import Extrapolation as Extrapolation, extrapolate as extrapolate
 from ._fokker_planck import (
     GridDensity as GridDensity,
     fokker_planck as fokker_planck,

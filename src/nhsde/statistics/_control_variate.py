@@ -70,7 +70,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from .._ensemble import Save
 from .._misc import cast_floats, check_key, check_number, check_span, check_steps
@@ -81,9 +81,9 @@ from .._solvers import solver_needs
 from .._system import StateLayout, StochasticSystem
 from ..noise import driver_intensity
 from ._cost import check_memory, path_bytes, peak_bytes
-from ._extrapolation import (
-    Derivatives,
-    Estimate,
+from ._estimate import AbstractEstimate, AbstractStatistic, Cost, Derivatives, MonteCarloEstimate, Stopwatch, Values
+from ._moments import GaussianClosure, integrate_moments
+from ._paths import (
     array_module,
     on_device,
     paired_moments,
@@ -94,7 +94,6 @@ from ._extrapolation import (
     solve_paths,
     with_tangents,
 )
-from ._moments import GaussianClosure, integrate_moments
 from ._sensitivities import check_wrt
 
 __all__ = ["ControlVariateEstimate", "PerEntry", "control_variate", "linearised_system"]
@@ -106,35 +105,36 @@ _ODE_STEPS = 256  # fewest Dopri8 steps of the moment equations (and ≥ 4 per S
 class PerEntry(eqx.Module):
     """A number per saved mean ``(n, k)`` and per covariance entry ``(n, k, k)``."""
 
-    mean: Float[Array, "n k"]
-    cov: Float[Array, "n k k"]
+    mean: Float[Values, "n k"]
+    cov: Float[Values, "n k k"]
 
 
-class ControlVariateEstimate(Estimate):
+class ControlVariateEstimate(AbstractEstimate):
     """Control-variate means and covariances (module docstring) with their standard errors, and
 
-    - ``plain``: the uncorrected :class:`Estimate` of the same paths;
+    - ``plain``: the uncorrected estimate of the same paths (its ``cost``: one solve's path-steps);
     - ``coefficient``: β per entry; ``variance_reduction``: ``Var Y / Var(Y − βC)`` per entry
       (``inf`` where the residual has no variance, 1 where neither has any);
     - ``control``: the exact mean and covariance of the control's saved quantities;
-    - ``cost``: path-steps of both solves, ``2·n_paths·steps`` (``plain_cost``: one solve);
+    - ``cost``: path-steps of both solves, ``2·n_paths·steps``;
     - ``derivatives``: with ``wrt``, those of ``mean`` and ``cov`` with β fixed, with their standard errors (module).
     """
 
-    plain: Estimate
+    ts: Float[Values, " n"]
+    mean: Float[Values, "n k"]
+    cov: Float[Values, "n k k"]
+    mean_se: Float[Values, "n k"]
+    cov_se: Float[Values, "n k k"]
+    n_paths: Int[Array, ""]
+    names: tuple[str, ...] = eqx.field(static=True)
+    roles: tuple[str, ...] = eqx.field(static=True)
+    plain: MonteCarloEstimate
     coefficient: PerEntry
     variance_reduction: PerEntry
     control: PerEntry
     derivatives: Derivatives | None
-    n_steps: int = eqx.field(static=True)
-
-    @property
-    def plain_cost(self) -> float:
-        return float(int(self.n_paths) * self.n_steps)
-
-    @property
-    def cost(self) -> float:
-        return 2.0 * self.plain_cost
+    cost: Cost = eqx.field(static=True)
+    statistic: AbstractStatistic | None = eqx.field(static=True)
 
 
 # ----------------------------------------------------------------------------- the control system
@@ -268,7 +268,9 @@ def _closure(control: StochasticSystem, dtype) -> GaussianClosure:
     params = cast_floats(validated(control.params), dtype)
     system = eqx.tree_at(lambda s: s.params, control, params)
     intensity = driver_intensity(control.noise, control.noise_dim, dtype)
-    return GaussianClosure(system, intensity, (), np.zeros((1, 0), dtype), np.ones((1,), dtype))
+    return GaussianClosure(
+        system, intensity, (), jax.device_put(np.zeros((1, 0), dtype)), jax.device_put(np.ones((1,), dtype))
+    )
 
 
 @eqx.filter_jit
@@ -338,6 +340,7 @@ def control_variate(
     parameters with β held fixed (module).  ``wrt``: names of scalar parameters
     (``('eps', 'nu')``): ``derivatives`` of the estimate in them (β fixed), with standard errors.
     """
+    watch = Stopwatch()
     if not isinstance(system, StochasticSystem):
         raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
     wrt = () if wrt is None else check_wrt(system, wrt)
@@ -415,7 +418,7 @@ def control_variate(
         )
 
     count, roles = jax.device_put(np.asarray(n_paths)), roles_of(system, names)
-    plain_estimate = Estimate(
+    plain_estimate = MonteCarloEstimate(
         ts=ts,
         mean=mean_y,
         cov=cov_y,
@@ -424,6 +427,9 @@ def control_variate(
         n_paths=count,
         names=names,
         roles=roles,
+        derivatives=None,
+        cost=Cost(float(n_paths * n_steps)),
+        statistic=None,
     )
     estimate = ControlVariateEstimate(
         ts=ts,
@@ -439,6 +445,7 @@ def control_variate(
         n_paths=count,
         names=names,
         roles=roles,
-        n_steps=n_steps,
+        cost=watch.cost(2 * n_paths * n_steps),
+        statistic=None,
     )
     return on_device(estimate, y.dtype)

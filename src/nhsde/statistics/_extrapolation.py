@@ -1,4 +1,4 @@
-"""Richardson–Romberg (Talay–Tubaro) extrapolation of saved statistics, and the paired-path machinery it shares.
+"""Richardson–Romberg (Talay–Tubaro) extrapolation of saved statistics.
 
 A scheme of weak order ``p`` has ``E f(X_h) = E f(X) + C h^p + O(h^{p+1})``
 (Talay & Tubaro, Stoch. Anal. Appl. 8 (1990), for Euler, ``p = 1``; Kloeden &
@@ -11,303 +11,60 @@ solves run on one Brownian path (``FixedSteps(h, brownian_dt=h/2)`` and
 ``FixedSteps(h/2, brownian_dt=h/2)`` with one key), so ``S(h/2)`` and ``S(h)`` are
 strongly correlated and the Monte-Carlo error of ``S_ex`` is that of the paired
 per-path combination, not of two independent runs.
-
-Statistics of paired paths (:func:`paired_moments`).  Sets ``Z_a`` of per-path
-values on the same paths and weights ``w_a`` give ``Σ_a w_a mean(Z_a)`` and
-``Σ_a w_a cov(Z_a)``; the standard error of the first is that of the per-path
-values ``Σ_a w_a Z_a``, of the second that of the per-path products
-``ψ = Σ_a w_a (Z_a − m_a)(Z_a − m_a)ᵀ``, ``Var ψ_ij = E ψ_ij² − (E ψ_ij)²`` with
-``E ψ_ij² = Σ_{a,b} w_a w_b E[(F_a,i F_b,i)(F_a,j F_b,j)]``, ``F = Z − m``, plus the
-centring term ``Σ_{a,b} w_a w_b (C^{ab}_ii C^{ab}_jj + C^{ab}_ij C^{ab}_ji)/(n(n − 1))``
-of the cross-covariances ``C^{ab}`` (exact for unbiased sample covariances; for one
-set ``simulate``'s ``covariance_variance``), never zero for a non-degenerate sample.
 """
 
 from __future__ import annotations
 
-import contextlib
-import dataclasses
-import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .._ensemble import AbstractMoments, Save, StationaryVarianceWarning
-from .._misc import check_number, check_span, check_steps, fold_key, is_concrete, under_trace
-from .._options import Batching, FixedSteps
-from .._simulate import forward_only, simulate
+from .._ensemble import Save
+from .._misc import check_number, check_span, check_steps
+from .._options import Batching
 from .._solvers import solver_needs
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
 from ._cost import check_memory, path_bytes, peak_bytes
+from ._estimate import AbstractEstimate, AbstractStatistic, Cost, Derivatives, MonteCarloEstimate, Stopwatch, Values
+from ._paths import (
+    coupled_paths,
+    coupling_solver,
+    on_device,
+    paired_moments,
+    paired_sensitivities,
+    paths_save,
+    roles_of,
+    safe_sqrt,
+)
 from ._sensitivities import check_wrt
-from ._variance_reduction import antithetic as reflected, signed
 
-__all__ = ["Derivatives", "Estimate", "Extrapolation", "extrapolate"]
+__all__ = ["Extrapolation", "extrapolate"]
 
 
-class Estimate(AbstractMoments):
-    """Means and covariances of saved quantities at ``ts`` with their Monte-Carlo standard errors.
+class Extrapolation(AbstractEstimate):
+    """The extrapolated moments, with ``fine``, the plain moments ``S(h/2)`` of the same paths, and
+    ``correction = S_ex − S(h/2)`` with its paired standard error: ``−correction`` estimates the bias of ``S(h/2)``,
+    ``−2^p·correction`` that of ``S(h)``; ``derivatives`` of the extrapolated moments when asked for (``wrt``);
+    ``cost`` both solves' path-steps (of the reflected paths too, with ``antithetic``)."""
 
-    What an estimator returns; ``n_paths`` counts the sampled paths (pairs count once).
-    """
-
-    ts: Float[Array, " n"]
-    mean: Float[Array, "n k"]
-    cov: Float[Array, "n k k"]
-    mean_se: Float[Array, "n k"]
-    cov_se: Float[Array, "n k k"]
+    ts: Float[Values, " n"]
+    mean: Float[Values, "n k"]
+    cov: Float[Values, "n k k"]
+    mean_se: Float[Values, "n k"]
+    cov_se: Float[Values, "n k k"]
     n_paths: Int[Array, ""]
     names: tuple[str, ...] = eqx.field(static=True)
     roles: tuple[str, ...] = eqx.field(static=True)
-
-    def standard_errors(self):
-        return self.mean_se, self.cov_se
-
-
-class Derivatives(eqx.Module):
-    """Derivatives of an estimate's means and covariances in the parameters ``wrt`` (leading axis), with their
-    Monte-Carlo standard errors (per-path tangents, :func:`paired_sensitivities`)."""
-
-    d_mean: Float[Array, "p n k"]
-    d_cov: Float[Array, "p n k k"]
-    d_mean_se: Float[Array, "p n k"]
-    d_cov_se: Float[Array, "p n k k"]
-    wrt: tuple[str, ...] = eqx.field(static=True)
-
-
-class Extrapolation(Estimate):
-    """The extrapolated moments, with ``fine``, the plain moments ``S(h/2)`` of the same paths, and
-    ``correction = S_ex − S(h/2)`` with its paired standard error: ``−correction`` estimates the bias of ``S(h/2)``,
-    ``−2^p·correction`` that of ``S(h)``; ``derivatives`` of the extrapolated moments when asked for (``wrt``)."""
-
-    fine: Estimate
-    correction: Estimate
+    fine: MonteCarloEstimate
+    correction: MonteCarloEstimate
     derivatives: Derivatives | None
-
-
-def array_module(*trees):
-    """The array module for statistics of kept per-path values: NumPy (float64, on the host) when every value is
-    concrete, so that no XLA program is compiled per path count; ``jax.numpy`` under JAX transformations."""
-    return np if is_concrete(*trees) else jnp
-
-
-def on_device(tree, dtype):
-    """``tree`` with its host (NumPy) floating-point leaves as JAX arrays of ``dtype``: a transfer, no program."""
-
-    def move(x):
-        host = isinstance(x, (np.ndarray, np.generic)) and np.issubdtype(x.dtype, np.floating)
-        return jax.device_put(np.asarray(x, dtype)) if host else x  # (jnp.asarray compiles a program per shape)
-
-    return jax.tree.map(move, tree)
-
-
-def safe_sqrt(v):
-    xp = array_module(v)
-    pos = v > 0
-    return xp.where(pos, xp.sqrt(xp.where(pos, v, 1.0)), 0.0)
-
-
-def paired_moments(paths: Sequence[Array], weights: Sequence[float]):
-    """``(mean, cov, mean_var, cov_var)`` of ``Σ_a w_a S(Z_a)``, ``Z_a`` ``(N, n, k)`` values of the same paths.
-
-    ``S`` is the sample mean or the unbiased sample covariance; ``*_var`` are the
-    squared standard errors (see the module).  Concrete values are reduced on the host in float64
-    (:func:`array_module`).
-    """
-    xp = array_module(paths, weights)
-    if xp is np:
-        paths = [np.asarray(z, np.float64) for z in paths]
-    n = paths[0].shape[0]
-    combined = sum(w * z for w, z in zip(weights, paths, strict=True))
-    mean = xp.mean(combined, axis=0)
-    mean_var = xp.var(combined, axis=0, ddof=1) / n
-    centred = [z - xp.mean(z, axis=0) for z in paths]
-    cov = xp.zeros(mean.shape + mean.shape[-1:], mean.dtype)
-    second, pair = xp.zeros_like(cov), xp.zeros_like(cov)
-    for w, f in zip(weights, centred, strict=True):
-        cov = cov + w * xp.einsum("pni,pnj->nij", f, f) / (n - 1)
-    for wa, fa in zip(weights, centred, strict=True):
-        for wb, fb in zip(weights, centred, strict=True):
-            prod = fa * fb
-            second = second + wa * wb * xp.einsum("pni,pnj->nij", prod, prod) / n
-            cross = xp.einsum("pni,pnj->nij", fa, fb) / n  # C^{ab}_ij = cov(Z_a,i, Z_b,j), central
-            diag = xp.diagonal(cross, axis1=-2, axis2=-1)
-            pair = pair + wa * wb * (diag[..., :, None] * diag[..., None, :] + cross * xp.swapaxes(cross, -1, -2))
-    # covariance_variance (simulate's) for the combination: (m₂₂ − m²)/n + Σ_ab w_a w_b (C^ab_ii C^ab_jj +
-    # C^ab_ij C^ab_ji)/(n(n − 1)), the exact covariance of unbiased sample covariances, with central moments
-    m = cov * (n - 1) / n
-    cov_var = xp.maximum(second - m**2, 0.0) / n + pair / (n * (n - 1))
-    return mean, cov, mean_var, cov_var
-
-
-def paired_sensitivities(
-    paths: Sequence[Array], tangents: Sequence[Array], weights: Sequence, cov_weights: Sequence | None = None
-):
-    """``(d_mean, d_cov, d_mean_var, d_cov_var)``: derivatives of :func:`paired_moments`' mean and covariance, with
-    squared standard errors, from per-path tangents ``T_a (p, N, n, k)`` of the values ``Z_a`` (pathwise, as
-    :func:`~nhsde.statistics.moment_sensitivities`): ``∂mean = Σ_a w_a mean(T_a)``, ``∂cov = Σ_a w'_a/(N−1) Σ_i ψ_a,i``
-    with ``ψ_a,i = (T_a,i − ∂m_a)F_a,iᵀ + F_a,i(T_a,i − ∂m_a)ᵀ``; the errors are those of the per-path sums over
-    ``a`` (the paths are shared).  Weights are numbers or arrays per entry (``(n, k)`` for the mean, ``(n, k, k)``
-    for the covariance: ``cov_weights`` ``w'``, default ``weights``)."""
-    cov_weights = weights if cov_weights is None else cov_weights
-    xp = array_module(paths, tangents, weights, cov_weights)
-    if xp is np:
-        paths, tangents = ([np.asarray(z, np.float64) for z in zs] for zs in (paths, tangents))
-    n = paths[0].shape[0]
-    combined = sum(w * t for w, t in zip(weights, tangents, strict=True))
-    d_mean = xp.mean(combined, axis=1)
-    d_mean_var = xp.var(combined, axis=1, ddof=1) / n
-    psi = 0.0
-    for w, z, t in zip(cov_weights, paths, tangents, strict=True):
-        f = z - xp.mean(z, axis=0)
-        tc = t - xp.mean(t, axis=1, keepdims=True)
-        tf = xp.einsum("apni,pnj->apnij", tc, f)
-        psi = psi + w * (tf + xp.swapaxes(tf, -1, -2))
-    d_cov = xp.sum(psi, axis=1) / (n - 1)
-    d_cov_var = (n / (n - 1)) ** 2 * xp.var(psi, axis=1, ddof=1) / n
-    return d_mean, d_cov, d_mean_var, d_cov_var
-
-
-def paths_save(save: Save | None, n_steps: int, names: tuple[str, ...]) -> Save:
-    """``save`` with per-path values kept and its number of times fixed on a grid of ``n_steps`` (the coarsest)."""
-    save = Save(names=names, n=2) if save is None else save
-    if not isinstance(save, Save):
-        raise TypeError(f"save={save!r}; expected nhsde.Save(...).")
-    n = save.n
-    if n is None:
-        n = max(k for k in range(2, 12) if n_steps % (k - 1) == 0)
-    elif n_steps % (n - 1):
-        raise ValueError(f"save.n={n}: n − 1 must divide the {n_steps} steps of the coarsest step.")
-    return Save(names=save.names, n=n, paths=True)
-
-
-def coupling_solver(solver):
-    """``solver`` if solves at different steps on one Brownian path have the law of plain solves; else raises."""
-    three_point = isinstance(solver, PlatenWeak2) and solver.increments == "three-point"
-    if three_point or (isinstance(solver, str) and solver == "weak2"):
-        raise ValueError(
-            f"solver={solver!r}: sums of three-point increments are not three-point, so a coarse solve on a shared "
-            "path does not have the law of a plain one; use nhsde.PlatenWeak2(increments='gaussian')."
-        )
-    return solver
-
-
-def with_tangents(fn: Callable[[StochasticSystem], Any], system: StochasticSystem, wrt: tuple[str, ...]):
-    """``(fn(system), tangents)``: with parameter names ``wrt``, ``∂fn/∂θ_a`` by forward mode (``jax.jacfwd``, the
-    parameters replaced through ``system.replace_params``) stacked on a leading axis ``a`` of every output leaf;
-    ``None`` without ``wrt``."""
-    if not wrt:
-        return fn(system), None
-
-    def both(*theta):
-        value = fn(system.replace_params(**dict(zip(wrt, theta, strict=True))))
-        return value, value
-
-    values = tuple(jnp.asarray(getattr(system.params, name)) for name in wrt)
-    # concrete parameters: only this forward-mode pass differentiates the solves, so their steps may be data
-    with forward_only() if is_concrete(system) and not under_trace() else contextlib.nullcontext():
-        d, value = jax.jacfwd(both, argnums=tuple(range(len(wrt))), has_aux=True)(*values)
-    return value, jax.tree.map(lambda _, per_parameter: array_module(per_parameter).stack(per_parameter), value, d)
-
-
-KEY_PATHS = 2**30
-"""Paths drawn from one key: path ``i`` of a run is path ``i mod 2^30`` of ``key`` for ``i < 2^30``, else of
-``fold_in(key, i // 2^30)``, so that runs of any size stay within the paths a key indexes."""
-
-
-def key_segments(key, first_path: int, n_paths: int):
-    """``(key, first, n)`` runs covering paths ``first_path … first_path + n_paths − 1`` (:data:`KEY_PATHS`)."""
-    while n_paths > 0:
-        segment, first = divmod(first_path, KEY_PATHS)
-        size = min(n_paths, KEY_PATHS - first)
-        yield (key if segment == 0 else fold_key(key, segment)), first, size
-        first_path, n_paths = first_path + size, n_paths - size
-
-
-RUN_PATHS = 1024
-"""Paths per :func:`~nhsde.simulate` call of the estimators: every count runs as whole runs of this size (the
-last run's surplus, the next paths of the same key, is dropped), so one compiled program serves every count."""
-
-
-def solve_paths(system: StochasticSystem, y0, key, *, first_path: int, n_paths: int, **options) -> Array:
-    """Per-path saved values of paths ``first_path … first_path + n_paths − 1`` (:data:`KEY_PATHS` per key) by
-    :func:`~nhsde.simulate` with ``options`` (whose ``save`` keeps the paths), in runs of :data:`RUN_PATHS`;
-    concrete values are gathered on the host (:func:`array_module`)."""
-    parts = []
-    system = signed(system)  # one program for the paths and their reflections
-    steps = options.get("steps")
-    if isinstance(steps, FixedSteps) and steps.brownian_dt is None:  # the base step as data: one program for all
-        options = {**options, "steps": FixedSteps(steps.dt, brownian_dt=steps.dt, max_steps=steps.max_steps)}
-    for k, first, size in key_segments(key, first_path, n_paths):
-        for start in range(first, first + size, RUN_PATHS):
-            with warnings.catch_warnings():  # coarse steps are the estimators' own: their bias is measured and priced
-                warnings.simplefilter("ignore", StationaryVarianceWarning)
-                ens = simulate(system, y0, k, n_paths=RUN_PATHS, first_path=start, **options)
-            assert ens.paths is not None
-            parts.append((ens.paths, min(RUN_PATHS, first + size - start)))
-    xp = array_module([p for p, _ in parts])
-    kept = [(np.asarray(p) if xp is np else p)[:keep] for p, keep in parts]
-    return kept[0] if len(kept) == 1 else xp.concatenate(kept)
-
-
-def coupled_paths(
-    system: StochasticSystem,
-    y0,
-    key,
-    *,
-    t0: float,
-    t1: float,
-    dts: Sequence[float],
-    brownian_dt: float,
-    solver,
-    save: Save,
-    n_paths: int,
-    antithetic: bool,
-    batching: Batching | None,
-    first_path: int = 0,
-    wrt: tuple[str, ...] = (),
-) -> tuple[list[Array], list[Array]]:
-    """Per-path saved values ``(n_paths, n, k)`` of paths ``first_path …`` (:data:`KEY_PATHS` per key) solved at
-    each of ``dts`` on one Brownian path of step ``brownian_dt``; with ``antithetic``, then the same for the
-    reflected paths.  With parameter names ``wrt``, also their tangents ``(len(wrt), n_paths, n, k)`` (forward
-    mode); else an empty list."""
-    systems = (system, reflected(system)) if antithetic else (system,)
-    out, tangents = [], []
-    for s in systems:
-        for dt in dts:
-
-            def per_path(solved: StochasticSystem, dt=dt):
-                return solve_paths(
-                    solved,
-                    y0,
-                    key,
-                    first_path=first_path,
-                    n_paths=n_paths,
-                    t0=t0,
-                    t1=t1,
-                    steps=FixedSteps(dt, brownian_dt=brownian_dt),
-                    solver=solver,
-                    save=save,
-                    batching=batching,
-                )
-
-            z, t = with_tangents(per_path, s, wrt)
-            out.append(z)
-            if wrt:
-                tangents.append(t)
-    return out, tangents
-
-
-def roles_of(system: StochasticSystem, names: tuple[str, ...]) -> tuple[str, ...]:
-    """The state role of each name, ``'observable'`` for derived observables."""
-    layout = system.layout
-    return tuple(layout.roles[layout.index(n)] if n in layout.names else "observable" for n in names)
+    cost: Cost = eqx.field(static=True)
+    statistic: AbstractStatistic | None = eqx.field(static=True)
 
 
 def extrapolate(
@@ -337,6 +94,7 @@ def extrapolate(
     ``wrt``: names of scalar parameters (``('eps', 'nu')``): ``derivatives`` of the extrapolated
     moments in them, with standard errors (per-path tangents).
     """
+    watch = Stopwatch()
     if not isinstance(system, StochasticSystem):
         raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
     wrt = () if wrt is None else check_wrt(system, wrt)
@@ -373,32 +131,29 @@ def extrapolate(
     )
     share = 0.5 if antithetic else 1.0
 
-    def estimate(coarse, fine):
+    names, c = save.names, 1 / (2**p - 1)
+    count = jax.device_put(np.asarray(n_paths))
+    common = dict(
+        ts=np.linspace(t0, t1, save.n), n_paths=count, names=names, roles=roles_of(system, names), statistic=None
+    )
+
+    def moments(coarse, fine) -> dict[str, Any]:
         weights = [share * coarse, share * fine] * (len(paths) // 2)
         mean, cov, mean_var, cov_var = paired_moments(paths, weights)
-        return Estimate(
-            ts=np.linspace(t0, t1, mean.shape[0]),
-            mean=mean,
-            cov=cov,
-            mean_se=safe_sqrt(mean_var),
-            cov_se=safe_sqrt(cov_var),
-            n_paths=jnp.asarray(n_paths),
-            names=names,
-            roles=roles_of(system, names),
-        )
+        return dict(mean=mean, cov=cov, mean_se=safe_sqrt(mean_var), cov_se=safe_sqrt(cov_var), **common)
 
-    names, c = save.names, 1 / (2**p - 1)
-    extrapolated = estimate(-c, 1 + c)
     derivatives = None
     if wrt:
         d_mean, d_cov, d_mean_var, d_cov_var = paired_sensitivities(
             paths, tangents, [share * -c, share * (1 + c)] * (len(paths) // 2)
         )
         derivatives = Derivatives(d_mean, d_cov, safe_sqrt(d_mean_var), safe_sqrt(d_cov_var), wrt)
+    path_steps = n_paths * (n_steps + 2 * n_steps) * (2 if antithetic else 1)
     result = Extrapolation(
-        **{f.name: getattr(extrapolated, f.name) for f in dataclasses.fields(Estimate)},
-        fine=estimate(0.0, 1.0),
-        correction=estimate(-c, c),
+        **moments(-c, 1 + c),
+        fine=MonteCarloEstimate(**moments(0.0, 1.0), derivatives=None, cost=Cost(path_steps * 2 / 3)),
+        correction=MonteCarloEstimate(**moments(-c, c), derivatives=None, cost=Cost(path_steps)),
         derivatives=derivatives,
+        cost=watch.cost(path_steps),
     )
     return on_device(result, paths[0].dtype)

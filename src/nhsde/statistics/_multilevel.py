@@ -41,7 +41,7 @@ from collections.abc import Sequence
 import equinox as eqx
 import jax
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from .._brownian import BLOCK
 from .._ensemble import Save
@@ -51,8 +51,8 @@ from .._solvers import solver_needs
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
 from ._cost import MAX_LEVELS, allocate, check_memory, level_cost, level_piece, path_bytes, peak_bytes
-from ._extrapolation import (
-    Estimate,
+from ._estimate import AbstractEstimate, AbstractStatistic, Cost, Derivatives, Stopwatch, Values, as_statistic
+from ._paths import (
     array_module,
     coupled_paths,
     coupling_solver,
@@ -68,52 +68,33 @@ from ._sensitivities import check_wrt
 __all__ = ["MultilevelEstimate", "multilevel_monte_carlo"]
 
 
-class MultilevelEstimate(Estimate):
-    """A multilevel estimate: the moments of ``Estimate`` plus the levels that made it.
+class MultilevelEstimate(AbstractEstimate):
+    """A multilevel estimate: the moments of every saved quantity plus the levels that made it.
 
-    ``target`` is the statistic the levels were chosen for, ``value``/``standard_error``
-    its estimate; per level ``ℓ``: ``n_paths_per_level[ℓ] = N_ℓ``, ``level_means[ℓ] = Ŷ_ℓ``
-    (the target's level term), ``level_variances[ℓ] = V_ℓ`` (its per-sample variance),
-    ``level_costs[ℓ] = C_ℓ`` (path-steps per sample); ``bias`` is the bias estimate
-    from the finest levels; ``dt`` is ``h₀``; with ``wrt``, ``d_value`` and ``d_value_se`` are the target's
-    derivatives in those parameters and their standard errors (else ``None``).
+    ``statistic`` is the one the levels were chosen for (``value()`` and ``derivative()`` read it); per level
+    ``ℓ``: ``n_paths_per_level[ℓ] = N_ℓ``, ``level_means[ℓ] = Ŷ_ℓ`` (the statistic's level term),
+    ``level_variances[ℓ] = V_ℓ`` (its per-sample variance), ``level_costs[ℓ] = C_ℓ`` (path-steps per sample);
+    ``bias`` is the bias estimate from the finest levels; ``dt`` is ``h₀``; ``derivatives`` with ``wrt``;
+    ``cost.path_steps`` is ``Σ N_ℓ C_ℓ``.
     """
 
-    value: Float[Array, ""]
-    standard_error: Float[Array, ""]
-    level_means: Float[Array, " L"]
-    level_variances: Float[Array, " L"]
-    bias: Float[Array, ""]
+    ts: Float[Values, " n"]
+    mean: Float[Values, "n k"]
+    cov: Float[Values, "n k k"]
+    mean_se: Float[Values, "n k"]
+    cov_se: Float[Values, "n k k"]
+    n_paths: Int[Array, ""]
+    names: tuple[str, ...] = eqx.field(static=True)
+    roles: tuple[str, ...] = eqx.field(static=True)
+    level_means: Float[Values, " L"]
+    level_variances: Float[Values, " L"]
+    bias: Float[Values, ""]
     n_paths_per_level: tuple[int, ...] = eqx.field(static=True)
     level_costs: tuple[float, ...] = eqx.field(static=True)
-    target: tuple = eqx.field(static=True)
     dt: float = eqx.field(static=True)
-    d_value: Float[Array, " p"] | None
-    d_value_se: Float[Array, " p"] | None
-    wrt: tuple[str, ...] = eqx.field(static=True)
-
-    @property
-    def cost(self) -> float:
-        """Path-steps of all levels, ``Σ N_ℓ C_ℓ``."""
-        return float(sum(n * c for n, c in zip(self.n_paths_per_level, self.level_costs)))
-
-
-def _target_index(target, names: tuple[str, ...]):
-    """``(kind, i, j)`` of ``target = ('mean', a)`` or ``('cov', a, b)`` among the saved ``names``."""
-    ok = isinstance(target, tuple) and (
-        (len(target) == 2 and target[0] == "mean") or (len(target) == 3 and target[0] == "cov")
-    )
-    if not ok or not all(isinstance(n, str) for n in target):
-        raise ValueError(f"target={target!r}; expected ('mean', name) or ('cov', name, name).")
-    missing = [n for n in target[1:] if n not in names]
-    if missing:
-        raise ValueError(f"target={target!r} names {missing}, which save does not keep (save.names={names}).")
-    i = names.index(target[1])
-    return target[0], i, names.index(target[-1])
-
-
-def _pick(kind, i, j, mean, cov):
-    return mean[-1, i] if kind == "mean" else cov[-1, i, j]
+    derivatives: Derivatives | None
+    cost: Cost = eqx.field(static=True)
+    statistic: AbstractStatistic = eqx.field(static=True)
 
 
 class _Levels:
@@ -188,7 +169,7 @@ def multilevel_monte_carlo(
     key,
     *,
     t1: float,
-    target: tuple,
+    statistic,
     rmse: float | None = None,
     n_paths: Sequence[int] | None = None,
     dt: float | None = None,
@@ -207,9 +188,10 @@ def multilevel_monte_carlo(
 
     Arguments as :func:`~nhsde.simulate`, and:
 
-    - ``target``: the statistic whose RMSE is controlled, at ``t1``: ``('mean', name)``
-      or ``('cov', name_a, name_b)``; its names must be saved.
-    - ``rmse``: the requested root-mean-square error of ``target`` (levels and
+    - ``statistic``: the statistic whose RMSE is controlled, at ``t1``: :class:`~nhsde.statistics.Mean`,
+      :class:`~nhsde.statistics.Covariance` or the shorthand ``('mean', name)``, ``('cov', a, b)``; its names must
+      be saved (``save`` defaults to them).
+    - ``rmse``: the requested root-mean-square error of ``statistic`` (levels and
       samples chosen adaptively), or ``n_paths``: a fixed ``(N_0, …, N_L)``, e.g.
       ``result.n_paths_per_level`` (no adaptation; differentiable in the parameters).
     - ``dt`` (or ``steps=FixedSteps(dt)``): the coarsest step ``h₀``.
@@ -220,10 +202,11 @@ def multilevel_monte_carlo(
     - ``piece_paths``: the smallest run on level 0 (halved per level, at least 64): samples are added in
       multiples of it.
     - ``max_levels``: the most levels to add before giving up.
-    - ``wrt``: names of scalar parameters (``('eps', 'nu')``): the target's derivatives in them,
-      ``d_value``, with their Monte-Carlo standard errors ``d_value_se`` (per-path tangents of every
-      level, :func:`~nhsde.statistics.moment_sensitivities`' estimator on the level differences).
+    - ``wrt``: names of scalar parameters (``('eps', 'nu')``): ``derivatives`` of every saved moment in them
+      (``derivative()`` reads the statistic's), with their Monte-Carlo standard errors (per-path tangents of
+      every level, :func:`~nhsde.statistics.moment_sensitivities`' estimator on the level differences).
     """
+    watch = Stopwatch()
     if not isinstance(system, StochasticSystem):
         raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
     if (rmse is None) == (n_paths is None):
@@ -264,10 +247,10 @@ def multilevel_monte_carlo(
         raise ValueError(
             f"max_levels={max_levels}; must be ≥ 1, and ≥ 2 with rmse=… (the bias estimate compares two levels)."
         )
-    target_names = tuple(dict.fromkeys(target[1:])) if isinstance(target, tuple) else ()
-    save = paths_save(save, steps0, target_names or system.layout.names)
+    statistic = as_statistic(statistic)
+    save = paths_save(save, steps0, statistic.names)
     assert save.names is not None
-    kind, i, j = _target_index(target, save.names)
+    statistic.check(save.names)
     key = check_key(key)
     wrt = () if wrt is None else check_wrt(system, wrt)
     levels = _Levels(
@@ -306,23 +289,23 @@ def multilevel_monte_carlo(
                 "rmse=…: choosing the levels needs concrete parameters; under jax transformations pass "
                 "n_paths=result.n_paths_per_level of an earlier call instead."
             )
-        moments = _adapt(levels, eps, alpha, max_levels, kind, i, j)
+        moments = _adapt(levels, eps, alpha, max_levels, statistic, save.names)
         counts = [levels.count(level) for level in range(len(moments))]
 
     xp = array_module(moments)
     mean, cov, mean_var, cov_var = (xp.sum(xp.stack(parts), axis=0) for parts in zip(*moments, strict=True))
-    level_means = xp.stack([_pick(kind, i, j, m[0], m[1]) for m in moments])
-    level_vars = xp.stack([_pick(kind, i, j, m[2], m[3]) * n for m, n in zip(moments, counts)])
-    value, var = _pick(kind, i, j, mean, cov), _pick(kind, i, j, mean_var, cov_var)
-    d_value = d_value_se = None
+    names = save.names
+    level_means = xp.stack([statistic.pick(names, m[0], m[1]) for m in moments])
+    level_vars = xp.stack([statistic.pick(names, m[2], m[3]) * n for m, n in zip(moments, counts)])
+    derivatives = None
     if wrt:
         sensitivities = [levels.sensitivities(level) for level in range(len(counts))]
         xp = array_module(sensitivities)
         d_mean, d_cov, d_mean_var, d_cov_var = (
             xp.sum(xp.stack(parts), axis=0) for parts in zip(*sensitivities, strict=True)
         )
-        d_value = d_mean[:, -1, i] if kind == "mean" else d_cov[:, -1, i, j]
-        d_value_se = safe_sqrt(d_mean_var[:, -1, i] if kind == "mean" else d_cov_var[:, -1, i, j])
+        derivatives = Derivatives(d_mean, d_cov, safe_sqrt(d_mean_var), safe_sqrt(d_cov_var), wrt)
+    level_costs = tuple(levels.cost(level) for level in range(len(counts)))
     estimate = MultilevelEstimate(
         ts=np.linspace(t0, t1, mean.shape[0]),
         mean=mean,
@@ -330,20 +313,17 @@ def multilevel_monte_carlo(
         mean_se=safe_sqrt(mean_var),
         cov_se=safe_sqrt(cov_var),
         n_paths=jax.device_put(np.asarray(sum(counts))),
-        names=save.names,
-        roles=roles_of(system, save.names),
-        value=value,
-        standard_error=safe_sqrt(var),
+        names=names,
+        roles=roles_of(system, names),
         level_means=level_means,
         level_variances=level_vars,
         bias=_bias(level_means, alpha),
         n_paths_per_level=tuple(counts),
-        level_costs=tuple(levels.cost(level) for level in range(len(counts))),
-        target=target,
+        level_costs=level_costs,
         dt=h0,
-        d_value=d_value,
-        d_value_se=d_value_se,
-        wrt=wrt,
+        derivatives=derivatives,
+        cost=watch.cost(sum(n * c for n, c in zip(counts, level_costs))),
+        statistic=statistic,
     )
     return on_device(estimate, levels.paths[0][0][0].dtype)
 
@@ -356,7 +336,7 @@ def _bias(level_means, alpha):
     return xp.maximum(xp.abs(level_means[-1]), xp.abs(level_means[-2]) / 2**alpha) / (2**alpha - 1)
 
 
-def _adapt(levels: _Levels, eps: float, alpha: float, max_levels: int, kind, i, j):
+def _adapt(levels: _Levels, eps: float, alpha: float, max_levels: int, statistic: AbstractStatistic, names):
     """Giles (2015) Algorithm 1 with samples in whole pieces; returns the moments of each level."""
     n_levels = min(3, max_levels)
     wanted = [levels.piece(level) for level in range(n_levels)]
@@ -365,7 +345,7 @@ def _adapt(levels: _Levels, eps: float, alpha: float, max_levels: int, kind, i, 
             levels.grow(level, n)
         moments = [levels.moments(level) for level in range(n_levels)]
         counts = [levels.count(level) for level in range(n_levels)]
-        variances = [max(float(_pick(kind, i, j, m[2], m[3])) * n, 1e-300) for m, n in zip(moments, counts)]
+        variances = [max(float(statistic.pick(names, m[2], m[3])) * n, 1e-300) for m, n in zip(moments, counts)]
         costs = [levels.cost(level) for level in range(n_levels)]
         optimal = allocate(variances, costs, eps)
         if not all(o < 2.0**62 for o in optimal):
@@ -379,7 +359,7 @@ def _adapt(levels: _Levels, eps: float, alpha: float, max_levels: int, kind, i, 
         if wanted != counts:
             levels.check_memory(wanted, f"rmse={eps:.3g}: the samples per level {tuple(wanted)}", "raise rmse.")
             continue
-        means = np.stack([_pick(kind, i, j, m[0], m[1]) for m in moments])
+        means = np.stack([statistic.pick(names, m[0], m[1]) for m in moments])
         if float(_bias(means, alpha)) <= eps / math.sqrt(2):
             return moments
         if n_levels >= max_levels:

@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
-from jaxtyping import Array, PRNGKeyArray, UInt
+from jaxtyping import Array, Float, Int, PRNGKeyArray, UInt
 
 from .._brownian import BLOCK, AbstractDriver
 from .._ensemble import Save
@@ -42,7 +42,8 @@ from .._options import AbstractSteps, Batching
 from .._simulate import MAX_PATH_INDEX, simulate
 from .._solvers import SOLVERS, solver_needs
 from .._system import StochasticSystem
-from ._extrapolation import Derivatives, Estimate, array_module, on_device, roles_of, with_tangents
+from ._estimate import AbstractEstimate, AbstractStatistic, Cost, Derivatives, Stopwatch, Values
+from ._paths import array_module, on_device, roles_of, with_tangents
 from ._sensitivities import check_wrt
 
 __all__ = ["QuasiMonteCarloEstimate", "quasi_monte_carlo", "scrambled_sobol", "sobol_points"]
@@ -158,12 +159,23 @@ def scrambled_sobol(key: PRNGKeyArray, d: int) -> tuple[Array, Array]:
     return scrambled, jr.bits(k_shift, (d,), jnp.uint32)
 
 
-class QuasiMonteCarloEstimate(Estimate):
+class QuasiMonteCarloEstimate(AbstractEstimate):
     """Means and covariances by randomised quasi-Monte Carlo, with standard errors from the spread of ``replicates``
-    independent scramblings; ``derivatives`` in the parameters ``wrt`` when asked for."""
+    independent scramblings; ``derivatives`` in the parameters ``wrt`` when asked for; ``cost`` the path-steps of
+    all replicates."""
 
+    ts: Float[Values, " n"]
+    mean: Float[Values, "n k"]
+    cov: Float[Values, "n k k"]
+    mean_se: Float[Values, "n k"]
+    cov_se: Float[Values, "n k k"]
+    n_paths: Int[Array, ""]
+    names: tuple[str, ...] = eqx.field(static=True)
+    roles: tuple[str, ...] = eqx.field(static=True)
     replicates: int = eqx.field(static=True)
     derivatives: Derivatives | None
+    cost: Cost = eqx.field(static=True)
+    statistic: AbstractStatistic | None = eqx.field(static=True)
 
 
 def _allowed_solvers() -> list[str]:
@@ -174,7 +186,7 @@ def _allowed_solvers() -> list[str]:
     ]
 
 
-def _combine(means: Array, seconds: Array):
+def _combine(means: Values, seconds: Values):
     """Mean and covariance from per-replicate means ``(R, n, k)`` and second moments ``(R, n, k, k)``.
 
     ``E[m mᵀ] = μμᵀ + Cov(m)``, and ``Cov(m)`` is estimated without bias by the replicate spread over ``R``:
@@ -188,7 +200,7 @@ def _combine(means: Array, seconds: Array):
     return mean, xp.mean(seconds, axis=0) - xp.einsum("ni,nj->nij", mean, mean) - spread
 
 
-def _se(per_replicate: Array, axis: int = 0) -> Array:
+def _se(per_replicate: Values, axis: int = 0) -> Values:
     return array_module(per_replicate).std(per_replicate, axis=axis, ddof=1) / math.sqrt(per_replicate.shape[axis])
 
 
@@ -231,6 +243,7 @@ def quasi_monte_carlo(
     parameters: ``derivatives`` of the moments in them (forward mode per replicate), with errors from the
     replicate spread.
     """
+    watch = Stopwatch()
     if not isinstance(system, StochasticSystem):
         raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
     wrt = () if wrt is None else check_wrt(system, wrt)
@@ -317,5 +330,7 @@ def quasi_monte_carlo(
         roles=roles_of(system, names),
         replicates=replicates,
         derivatives=derivatives,
+        cost=watch.cost(replicates * n_paths * n_base),
+        statistic=None,
     )
     return on_device(estimate, ts.dtype)

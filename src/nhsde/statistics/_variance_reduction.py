@@ -13,14 +13,13 @@ because the reflection acts on the shared counter-based increments.
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array
 
 from .._brownian import AbstractDriver
 from .._misc import is_concrete
@@ -45,7 +44,7 @@ class Antithetic(AbstractDriver):
     """
 
     driver: AbstractDriver
-    sign: Array = eqx.field(default=-1.0, converter=_sign)
+    sign: Any = eqx.field(default=-1.0, converter=_sign)
     continuous: ClassVar[bool] = True
 
     def __check_init__(self):

@@ -1,0 +1,149 @@
+"""The pilot of :func:`~nhsde.statistics.to_accuracy`: per candidate solver, ``m`` solves at ``h_ℓ = h₀ 2^{−ℓ}`` on
+one Brownian path (and on its reflection), read into the per-sample and level variances and the weak-error model
+``E S(h) = S + C h^p`` (the :mod:`._accuracy` module)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Any
+
+import diffrax as dfx
+import jax
+import numpy as np
+
+from .._misc import check_number, fold_key
+from .._solvers import solver_needs
+from .._system import StochasticSystem
+from .._weak import PlatenWeak2
+from ._estimate import AbstractStatistic
+from ._paths import coupled_paths, coupling_solver, paired_moments
+from ._report import PilotSummary
+
+__all__ = ["Candidate", "candidate_solvers", "pick_moments", "run_pilot"]
+
+
+# --- the statistic --------------------------------------------------------------------------------------------
+
+
+def pick_moments(statistic: AbstractStatistic, names: tuple[str, ...], moments) -> tuple[float, float]:
+    """Value and variance of the statistic at the last save time from ``paired_moments``' output."""
+    mean, cov, mean_var, cov_var = moments
+    return float(statistic.pick(names, mean, cov)), float(statistic.pick(names, mean_var, cov_var))
+
+
+# --- candidates -------------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Candidate:
+    label: str
+    solver: str | dfx.AbstractSolver
+    order: int
+
+
+def candidate_solvers(system: StochasticSystem, solver, weak_order) -> tuple[list[Candidate], list[str]]:
+    """The solvers to consider and, for the default set, notes on those that do not apply."""
+    if solver is not None:
+        coupling_solver(solver)
+        solver_needs(solver, system)  # raises naming solver= when it does not apply
+        order = 2 if isinstance(solver, PlatenWeak2) else 1
+        if weak_order is not None:
+            order = check_number("weak_order", weak_order, integer=True, positive=True)
+        label = solver if isinstance(solver, str) else type(solver).__name__
+        return [Candidate(str(label), solver, order)], []
+    out, notes = [], []
+    for label, s, p in (("euler", "euler", 1), ("weak2-gaussian", PlatenWeak2(increments="gaussian"), 2)):
+        try:
+            solver_needs(s, system)
+        except ValueError as e:
+            notes.append(f"{label}: {e}")
+            continue
+        out.append(Candidate(label, s, p))
+    return out, notes
+
+
+# --- the pilot --------------------------------------------------------------------------------------------------
+
+
+def run_pilot(system, y0, key, cand: Candidate, *, t0, t1, h0, levels, n_paths, save, anti, batching, statistic, timed):
+    dts = tuple(h0 / 2**ell for ell in range(levels))
+    steps0 = round((t1 - t0) / h0)
+    opts: dict[str, Any] = dict(
+        t0=t0, t1=t1, dts=dts, brownian_dt=dts[-1], solver=cand.solver, save=save, batching=batching
+    )
+    paths, _ = coupled_paths(system, y0, key, n_paths=n_paths, antithetic=anti, **opts)
+    jax.block_until_ready(paths)
+    n_sys = 2 if anti else 1
+    work = float(n_paths * n_sys * sum(steps0 * 2**ell for ell in range(levels)))
+    rate = math.nan
+    if timed:  # compiled now: time a second run of the same programs
+        start = time.perf_counter()
+        jax.block_until_ready(coupled_paths(system, y0, fold_key(key, 1), n_paths=n_paths, antithetic=anti, **opts))
+        rate = (time.perf_counter() - start) / work  # one run's seconds over one run's work
+        work *= 2
+    plain, refl = paths[:levels], paths[levels:]
+    if not all(np.all(np.isfinite(p)) for p in paths):
+        raise ValueError(
+            f"dt={h0}: the pilot of solver {cand.label} at steps {dts} gave non-finite values; pass a smaller dt "
+            "(the coarsest step, where the solver is stable)."
+        )
+
+    def stat(sets, weights):
+        value, var = pick_moments(statistic, save.names, paired_moments(sets, weights))
+        return value, max(var, 0.0)
+
+    def anti_stat(ells, weights):  # the pair average of the combination: weights halved on both sets
+        if not anti:
+            return math.nan, math.nan
+        sets = [plain[e] for e in ells] + [refl[e] for e in ells]
+        return stat(sets, [0.5 * w for w in weights] * 2)
+
+    singles = [stat([plain[ell]], [1.0]) for ell in range(levels)]
+    values = tuple(v for v, _ in singles)
+    ses = tuple(math.sqrt(var) for _, var in singles)
+    diffs = [stat([plain[ell], plain[ell - 1]], [1.0, -1.0]) for ell in range(1, levels)]
+    level_vars = (singles[0][1] * n_paths,) + tuple(var * n_paths for _, var in diffs)
+    anti_levels = (anti_stat([0], [1.0])[1] * n_paths,) + tuple(
+        anti_stat([ell, ell - 1], [1.0, -1.0])[1] * n_paths for ell in range(1, levels)
+    )
+    p = cand.order
+    scale = 2**p - 1
+    finest = diffs[-2:]  # Ŷ_ℓ for the two finest ℓ
+    bounds = [
+        (abs(y) + 2 * math.sqrt(var)) / (dts[ell] ** p * scale)
+        for ell, (y, var) in zip(range(levels - len(finest), levels), finest)
+    ]
+    y_fine = diffs[-1][0]
+    c_signed = -y_fine / (dts[-1] ** p * scale)
+    # extrapolation: variance of the finest pair's combination, residual bias from two extrapolations
+    c = 1 / scale
+    ex_var = stat([plain[-2], plain[-1]], [-c, 1 + c])[1] * n_paths
+    ex_anti = anti_stat([levels - 2, levels - 1], [-c, 1 + c])[1] * n_paths
+    if levels >= 3:
+        # E_ℓ − E_{ℓ−1} = (2^p S_ℓ − (2^p + 1) S_{ℓ−1} + S_{ℓ−2}) / (2^p − 1) ≈ C' h_{ℓ−1}^{p+1} (1 − 2^{p+1})
+        d, dvar = stat([plain[-1], plain[-2], plain[-3]], [2**p * c, -(2**p + 1) * c, c])
+        ex_bound = (abs(d) + 2 * math.sqrt(dvar)) / (dts[-2] ** (p + 1) * (2 ** (p + 1) - 1))
+        ex_signed = -d / (dts[-2] ** (p + 1) * (2 ** (p + 1) - 1))
+    else:
+        ex_bound = ex_signed = math.nan
+    return PilotSummary(
+        solver=cand.label,
+        order=p,
+        dts=dts,
+        values=values,
+        standard_errors=ses,
+        variance=singles[-1][1] * n_paths,
+        antithetic_variance=anti_stat([levels - 1], [1.0])[1] * n_paths,
+        level_variances=level_vars,
+        antithetic_level_variances=anti_levels,
+        bias_constant=c_signed,
+        bias_bound=max(bounds),
+        extrapolation_variance=ex_var,
+        antithetic_extrapolation_variance=ex_anti,
+        extrapolation_constant=ex_signed,
+        extrapolation_bound=ex_bound,
+        work=work,
+        seconds_per_path_step=rate,
+    )
