@@ -520,16 +520,25 @@ def child(row):
             dt=h0,
             save=case["save"],
         )
-        extra = dict(
-            choice=res.choice,
-            work=res.work,
-            pilot_work=res.pilot_work,
-            predicted_work=res.predicted_work,
-            compile_seconds=res.compile_seconds,
-            run_seconds=res.run_seconds,
-            bias_estimate=res.bias,
-        )
-        return float(res.value), float(res.standard_error), extra
+        if hasattr(res, "cost"):  # after f3f3b27: value() and Cost records
+            value, se = res.value()
+            extra = dict(
+                work=res.cost.path_steps,
+                pilot_work=res.pilot_cost.path_steps,
+                predicted_work=res.predicted.path_steps,
+                compile_seconds=res.cost.compile_seconds,
+                run_seconds=res.run_cost.seconds,
+            )
+        else:
+            value, se = res.value, res.standard_error
+            extra = dict(
+                work=res.work,
+                pilot_work=res.pilot_work,
+                predicted_work=res.predicted_work,
+                compile_seconds=res.compile_seconds,
+                run_seconds=res.run_seconds,
+            )
+        return float(value), float(se), dict(choice=res.choice, bias_estimate=res.bias, **extra)
 
     for phase in ("first", "warm"):
         del compiled[:]
