@@ -96,6 +96,7 @@ def to_accuracy(
     cost: str = "path-steps",
     control_variate: bool = True,
     quasi_monte_carlo: bool = True,
+    explore: bool = False,
     batching: Batching | None = None,
     wrt: Sequence[str] | None = None,
 ) -> AccuracyResult:
@@ -127,8 +128,13 @@ def to_accuracy(
       ``pilot_paths/8`` paths rounded down to a power of two, run twice to time it) predicts its work from its
       variance at the Monte-Carlo rate ``N^{−1/2}``, an upper bound where it converges faster; its work is
       counted in Euler path-steps (times the measured cost ratio ``κ``, in the report's note).
+    - ``explore``: price every alternative.  By default (``False``) the first solver's pilot (weak order 2
+      where the driver allows it) prices its plain, extrapolated and multilevel runs, and a further pilot (another
+      solver, the control variate, quasi-Monte Carlo) runs only while the best run so far is predicted to take
+      longer than compiling that pilot's program (both measured on the first pilot): a loose target is answered
+      after one compiled program, a tight one after all.  Alternatives not priced are listed with the reason.
     - ``wrt``: names of scalar parameters (``('eps', 'nu')``): the statistic's derivatives in them with their
-      standard errors (``derivative``, ``derivative_se``), from the chosen estimator's per-path tangents.
+      standard errors (``derivative()``), from the chosen estimator's per-path tangents.
     """
     watch = Stopwatch()
     if not isinstance(system, StochasticSystem):
@@ -190,42 +196,42 @@ def to_accuracy(
     use_anti = system.noise.continuous and antithetic is not False
     timed = cost == "seconds"
 
-    def pilots_at(h0: float) -> list[PilotSummary]:
-        return [
-            run_pilot(
-                system,
-                y0,
-                fold_key(pilot_key, c),
-                cand,
-                t0=t0,
-                t1=t1,
-                h0=h0,
-                levels=pilot_levels,
-                n_paths=pilot_paths,
-                save=save,
-                anti=use_anti,
-                batching=batching,
-                statistic=statistic,
-                timed=timed,
-            )
-            for c, cand in enumerate(candidates)
-        ]
+    # weak order 2 first: the solver most alternatives choose; the pilot keys stay each solver's own
+    order = sorted(range(len(candidates)), key=lambda c: -candidates[c].order)
+
+    def pilot_of(c: int, h0: float) -> tuple[PilotSummary, Cost]:
+        pilot_watch = Stopwatch()
+        p = run_pilot(
+            system,
+            y0,
+            fold_key(pilot_key, c),
+            candidates[c],
+            t0=t0,
+            t1=t1,
+            h0=h0,
+            levels=pilot_levels,
+            n_paths=pilot_paths,
+            save=save,
+            anti=use_anti,
+            batching=batching,
+            statistic=statistic,
+            timed=timed,
+        )
+        return p, pilot_watch.cost(p.work)
 
     failed_work = 0.0  # the default coarsest step is halved while the pilot's paths fail there (a nonlinear blow-up)
     while True:
         try:
-            pilots = pilots_at(h0)
+            first, first_cost = pilot_of(order[0], h0)
             break
         except (SimulationError, ValueError) as e:
             blown_up = isinstance(e, SimulationError) or "non-finite values" in str(e)
             if not (default_step and blown_up and steps0 < 2**MAX_PILOT_HALVINGS):
                 raise
-            failed_work += len(candidates) * pilot_paths * (2 if use_anti else 1) * steps0 * (2**pilot_levels - 1)
+            failed_work += pilot_paths * (2 if use_anti else 1) * steps0 * (2**pilot_levels - 1)
             h0, steps0 = h0 / 2, steps0 * 2
-    pilot_work = sum(p.work for p in pilots) + failed_work
     if rmse is None:
-        best = min(pilots, key=lambda p: p.standard_errors[-1])
-        value, se = best.values[-1], best.standard_errors[-1]
+        value, se = first.values[-1], first.standard_errors[-1]
         if not abs(value) > 2 * se:
             raise ValueError(
                 f"relative_rmse={relative_rmse}: the pilot's value {value:.3g} ± {se:.2g} is not distinguishable "
@@ -243,21 +249,48 @@ def to_accuracy(
         pilot_paths=pilot_paths,
         pilot_levels=pilot_levels,
     )
-    alternatives: list[AccuracyAlternative] = []
-    for cand, p in zip(candidates, pilots):
-        alternatives += solver_alternatives(
-            system, y0, run_key, cand, p, rmse, h0, steps0, use_anti, antithetic, common
+    # a further pilot pays only while the best run so far takes longer than compiling it: both from the first pilot
+    compile_seconds = max(first_cost.compile_seconds, 0.0)
+    seconds_per_step = max(first_cost.seconds - first_cost.compile_seconds, 0.0) / max(first.work, 1.0)
+    priced = {order[0]: first}
+    alternatives: list[AccuracyAlternative] = solver_alternatives(
+        system, y0, run_key, candidates[order[0]], first, rmse, h0, steps0, use_anti, antithetic, common
+    )
+
+    def worth_pricing(name: str, method: str, label: str) -> bool:
+        runnable = [a.cost for a in alternatives if a.run is not None and math.isfinite(a.cost)]
+        best = min(runnable, default=math.inf) * seconds_per_step
+        if explore or best > compile_seconds:
+            return True
+        note = (
+            f"not priced: the best run so far is predicted to take {best:.2g} s, less than compiling its pilot "
+            f"(≈ {compile_seconds:.2g} s); explore=True prices it"
         )
+        alternatives.append(AccuracyAlternative(name, method, label, False, math.inf, note=note))
+        return False
+
+    for c in order[1:]:
+        if worth_pricing(f"any, {candidates[c].label}", "-", candidates[c].label):
+            priced[c], _ = pilot_of(c, h0)
+            alternatives += solver_alternatives(
+                system, y0, run_key, candidates[c], priced[c], rmse, h0, steps0, use_anti, antithetic, common
+            )
     for note in skipped:
         label = note.split(":", 1)[0]
         alternatives.append(AccuracyAlternative(f"any, {label}", "-", label, False, math.inf, note=note))
-    if control_variate and (solver is None or solver == "euler" or type(solver) is dfx.Euler):
+    cv_applies = control_variate and (solver is None or solver == "euler" or type(solver) is dfx.Euler)
+    if cv_applies and worth_pricing("control variate, euler", "control variate", "euler"):
         alternatives.append(control_variate_alternative(system, y0, pilot_key, run_key, rmse, h0, steps0, common))
-    euler = next((p for c, p in zip(candidates, pilots) if c.solver == "euler" or type(c.solver) is dfx.Euler), None)
-    if quasi_monte_carlo and euler is not None:
+    is_euler = [c.solver == "euler" or type(c.solver) is dfx.Euler for c in candidates]
+    euler = next((p for c, p in priced.items() if is_euler[c]), None)
+    qmc_applies = quasi_monte_carlo and euler is not None
+    if qmc_applies and worth_pricing("quasi-Monte Carlo, euler", "quasi-Monte Carlo", "euler"):
+        assert euler is not None
         alternatives.append(
             quasi_monte_carlo_alternative(system, y0, pilot_key, run_key, rmse, h0, steps0, euler, common)
         )
+    pilots = [priced[c] for c in sorted(priced)]  # in the candidates' order
+    pilot_work = sum(p.work for p in pilots) + failed_work
     pilot_work += sum(a.pilot_work for a in alternatives)
     per_sample = path_bytes(n_save, len(names), len(wrt))
     alternatives = [dataclasses.replace(a, memory=peak_bytes(kept_samples(a) * per_sample)) for a in alternatives]
