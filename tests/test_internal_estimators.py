@@ -1,5 +1,5 @@
 """Internals of the estimators: the bias and work model that plans them (``statistics/_cost.py``), and the keys of
-runs beyond the paths one key indexes (``statistics/_extrapolation.py``)."""
+runs beyond the paths one key indexes (``statistics/_paths.py``)."""
 
 import math
 
@@ -10,7 +10,7 @@ import pytest
 
 import nhsde
 from nhsde.scenes import BallOnVibratingPlane
-from nhsde.statistics import _extrapolation
+from nhsde.statistics import _paths
 from nhsde.statistics._cost import best_single, multilevel_plan
 
 BALL = BallOnVibratingPlane(eps=1.0, nu=1.0)
@@ -38,12 +38,12 @@ def test_the_bias_model_carries_the_coarsest_step(h0):
 def test_runs_beyond_the_paths_of_one_key_draw_from_further_keys(monkeypatch):
     """Path ``i ≥ KEY_PATHS`` is path ``i mod KEY_PATHS`` of ``fold_in(key, i // KEY_PATHS)`` (made small here): a run
     across the boundary is the concatenation of the two keys' runs, and their paths differ."""
-    monkeypatch.setattr(_extrapolation, "KEY_PATHS", 128)
+    monkeypatch.setattr(_paths, "KEY_PATHS", 128)
     system, key = BALL.build(), jax.random.key(7)
     args = dict(t0=0.0, t1=1.0, dts=(0.25,), brownian_dt=0.25, solver="euler", antithetic=False, batching=None)
     args["save"] = nhsde.Save(names=("x",), n=2, paths=True)
-    (both,), _ = _extrapolation.coupled_paths(system, Y0, key, n_paths=128, first_path=64, **args)
-    (first,), _ = _extrapolation.coupled_paths(system, Y0, key, n_paths=64, first_path=64, **args)
-    (second,), _ = _extrapolation.coupled_paths(system, Y0, jax.random.fold_in(key, 1), n_paths=64, **args)
+    (both,), _ = _paths.coupled_paths(system, Y0, key, n_paths=128, first_path=64, **args)
+    (first,), _ = _paths.coupled_paths(system, Y0, key, n_paths=64, first_path=64, **args)
+    (second,), _ = _paths.coupled_paths(system, Y0, jax.random.fold_in(key, 1), n_paths=64, **args)
     np.testing.assert_array_equal(np.asarray(both), np.concatenate([first, second]))
     assert not np.any(np.asarray(first[:, -1]) == np.asarray(second[:, -1]))

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.stats import qmc
 
-from nhsde.statistics._qmc import _direction_numbers, _ScrambledSobol, scrambled_sobol, sobol_points
+from nhsde.statistics._qmc import ScrambledSobol, _direction_numbers, scrambled_sobol, sobol_points
 
 
 def test_unscrambled_points_are_scipys():
@@ -36,7 +36,7 @@ def test_scrambled_points_stratify_every_dimension():
 
 def test_increments_have_the_wiener_law_and_sum_to_the_endpoint():
     n_base, m, blocks = 16, 2, 64  # 4096 paths
-    driver = _ScrambledSobol(*scrambled_sobol(jax.random.key(2), n_base * m), n_base, m)
+    driver = ScrambledSobol(*scrambled_sobol(jax.random.key(2), n_base * m), n_base, m)
     dt = jnp.float64(0.05)
 
     def increments(substeps):

@@ -15,10 +15,15 @@ import os
 import signal
 import threading
 
-__all__ = ["POLL_STEPS", "poll", "watching"]
+__all__ = ["POLL_ABOVE", "POLL_STEPS", "poll", "watching"]
 
 POLL_STEPS = 1024
 """Steps between two polls of a compiled loop (a chunk's step is far dearer than the poll)."""
+
+POLL_ABOVE = 2**27
+"""Work (path-steps × state components) above which a run polls for Ctrl-C.  A smaller run ends within seconds, and
+its program has no host callback, which JAX's persistent compilation cache requires (JAX 0.10 writes no entry for a
+program with one)."""
 
 _pipe: tuple[int, int] | None = None
 _pending = threading.Event()

@@ -45,7 +45,7 @@ from ._ensemble import (
     check_result,
     failure_result,
 )
-from ._interrupt import POLL_STEPS, poll, watching
+from ._interrupt import POLL_ABOVE, POLL_STEPS, poll, watching
 from ._misc import cast_floats, check_key, check_number, check_steps, is_concrete, under_trace
 from ._options import AbstractSteps, AdaptiveSteps, Batching, FixedSteps
 from ._params import check_ranges, validated
@@ -95,6 +95,8 @@ class _Plan:
     checkpoint: bool
     raise_on_failure: bool
     traced_stability: bool
+    poll: bool  # Ctrl-C polled in the step loop (a host callback: the program cannot enter the persistent cache)
+    params_checked: bool  # concrete parameters, their ranges checked before the run
 
     @property
     def intervals(self) -> int:
@@ -168,13 +170,15 @@ def _fixed_chunk(
             jax.debug.callback(poll)
             return jax.lax.fori_loop(0, POLL_STEPS, body, state)
 
-        # the step counter rides in the carry: no per-step arrays, memory independent of steps
-        # (both loops always, an empty one included: the program's shape and memory do not depend on the steps;
-        # with trip counts as data they are while loops, with static ones scans)
+        # the step counter rides in the carry: no per-step arrays, memory independent of steps (with trip counts
+        # as data the loops are while loops, with static ones scans)
         state = (y, ok, j.astype(jnp.int32) * per_save)
-        state = jax.lax.fori_loop(0, per_save // POLL_STEPS, polled, state)
-        jax.debug.callback(poll)
-        y, ok, _ = jax.lax.fori_loop(0, per_save % POLL_STEPS, body, state)
+        if plan.poll:  # both loops always, an empty one included: the program does not depend on the steps
+            state = jax.lax.fori_loop(0, per_save // POLL_STEPS, polled, state)
+            jax.debug.callback(poll)
+            y, ok, _ = jax.lax.fori_loop(0, per_save % POLL_STEPS, body, state)
+        else:
+            y, ok, _ = jax.lax.fori_loop(0, per_save, body, state)
         done = chunk_index * plan.intervals + j + 1
         meter_state = meter.step(meter_state, jnp.asarray(done, dtype) / total_ticks)
         t = t0 + ((j + 1).astype(jnp.int32) * per_save).astype(dtype) * dt
@@ -234,7 +238,8 @@ def _adaptive_chunk(
         bad = (sol.result != dfx.RESULTS.successful) | ~jnp.all(jnp.isfinite(ys))
         return observe(ts, ys, params), bad
 
-    jax.debug.callback(poll)  # Ctrl-C, between chunks
+    if plan.poll:
+        jax.debug.callback(poll)  # Ctrl-C, between chunks
     obs, bad = jax.vmap(one)(y0, ids)
     meter_state = meter.step(meter_state, jnp.asarray(chunk_index + 1, dtype) / plan.n_chunks)
     return obs, bad, meter_state
@@ -243,7 +248,9 @@ def _adaptive_chunk(
 @eqx.filter_jit
 def _run(system: StochasticSystem, needs: SolverNeeds, y0, key, first_path, grid: _Grid, about, plan: _Plan, meter):
     # Compute in the state's precision: float leaves follow y0's dtype.
-    params = cast_floats(validated(system.params), y0.dtype)
+    # traced parameters get their range checks here; concrete ones were checked before the run (the check is a
+    # host callback, which keeps the program out of the persistent cache)
+    params = cast_floats(system.params if plan.params_checked else validated(system.params), y0.dtype)
     chunk_fn = _adaptive_chunk if plan.adaptive else _fixed_chunk
     total = plan.n_chunks * plan.chunk
     if plan.per_path_y0:
@@ -709,6 +716,8 @@ def simulate(
         checkpoint=bool(checkpoint),
         raise_on_failure=on_failure == "raise",
         traced_stability=_checks_linear(system, needs) and not is_concrete(system.params),
+        poll=n_paths * n_steps * system.state_dim > POLL_ABOVE,
+        params_checked=is_concrete(system.params),
     )
     meter = dfx.NoProgressMeter() if progress_meter is None else progress_meter
     if not isinstance(meter, dfx.AbstractProgressMeter):

@@ -131,8 +131,9 @@ def to_accuracy(
     - ``explore``: price every alternative.  By default (``False``) the first solver's pilot (weak order 2
       where the driver allows it) prices its plain, extrapolated and multilevel runs, and a further pilot (another
       solver, the control variate, quasi-Monte Carlo) runs only while the best run so far is predicted to take
-      longer than compiling that pilot's program (both measured on the first pilot): a loose target is answered
-      after one compiled program, a tight one after all.  Alternatives not priced are listed with the reason.
+      longer than that pilot would, compiling included (both measured on the first pilot, so the choice depends on
+      the machine): a loose target is answered after one compiled program, a tight one after all.  Alternatives not
+      priced are listed with the reason.
     - ``wrt``: names of scalar parameters (``('eps', 'nu')``): the statistic's derivatives in them with their
       standard errors (``derivative()``), from the chosen estimator's per-path tangents.
     """
@@ -249,8 +250,9 @@ def to_accuracy(
         pilot_paths=pilot_paths,
         pilot_levels=pilot_levels,
     )
-    # a further pilot pays only while the best run so far takes longer than compiling it: both from the first pilot
-    compile_seconds = max(first_cost.compile_seconds, 0.0)
+    # a further pilot pays only while the best run so far takes longer than that pilot would (compiling its
+    # program and running it): both measured on the first pilot
+    pilot_seconds = first_cost.seconds
     seconds_per_step = max(first_cost.seconds - first_cost.compile_seconds, 0.0) / max(first.work, 1.0)
     priced = {order[0]: first}
     alternatives: list[AccuracyAlternative] = solver_alternatives(
@@ -260,11 +262,11 @@ def to_accuracy(
     def worth_pricing(name: str, method: str, label: str) -> bool:
         runnable = [a.cost for a in alternatives if a.run is not None and math.isfinite(a.cost)]
         best = min(runnable, default=math.inf) * seconds_per_step
-        if explore or best > compile_seconds:
+        if explore or best > pilot_seconds:
             return True
         note = (
-            f"not priced: the best run so far is predicted to take {best:.2g} s, less than compiling its pilot "
-            f"(≈ {compile_seconds:.2g} s); explore=True prices it"
+            f"not priced: the best run so far is predicted to take {best:.2g} s, less than its pilot would "
+            f"(≈ {pilot_seconds:.2g} s, compiling included); explore=True prices it"
         )
         alternatives.append(AccuracyAlternative(name, method, label, False, math.inf, note=note))
         return False

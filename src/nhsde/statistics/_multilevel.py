@@ -317,7 +317,7 @@ def multilevel_monte_carlo(
         roles=roles_of(system, names),
         level_means=level_means,
         level_variances=level_vars,
-        bias=_bias(level_means, alpha),
+        bias=bias_estimate(level_means, alpha),
         n_paths_per_level=tuple(counts),
         level_costs=level_costs,
         dt=h0,
@@ -328,7 +328,7 @@ def multilevel_monte_carlo(
     return on_device(estimate, levels.paths[0][0][0].dtype)
 
 
-def _bias(level_means, alpha):
+def bias_estimate(level_means, alpha):
     """Giles (2015) Algorithm 1: ``max(|Ŷ_L|, |Ŷ_{L−1}|/2^α)/(2^α − 1)``."""
     xp = array_module(level_means)
     if level_means.shape[0] < 2:
@@ -360,11 +360,11 @@ def _adapt(levels: _Levels, eps: float, alpha: float, max_levels: int, statistic
             levels.check_memory(wanted, f"rmse={eps:.3g}: the samples per level {tuple(wanted)}", "raise rmse.")
             continue
         means = np.stack([statistic.pick(names, m[0], m[1]) for m in moments])
-        if float(_bias(means, alpha)) <= eps / math.sqrt(2):
+        if float(bias_estimate(means, alpha)) <= eps / math.sqrt(2):
             return moments
         if n_levels >= max_levels:
             raise ValueError(
-                f"max_levels={max_levels}: the bias estimate {float(_bias(means, alpha)):.3g} is still above "
+                f"max_levels={max_levels}: the bias estimate {float(bias_estimate(means, alpha)):.3g} is still above "
                 f"rmse/√2 = {eps / math.sqrt(2):.3g}; raise max_levels or rmse, or check weak_order={alpha}."
             )
         n_levels += 1

@@ -8,11 +8,11 @@ term ``P_ℓ − P_{ℓ−1}`` is computed per point.  ``R`` independent scrambl
 ``fold_in(fold_in(key, ℓ), r)``) give ``R`` independent unbiased estimates ``Ŷ_{ℓ,r}`` of the level term, each
 over the points ``0 … N_ℓ − 1`` (a power of two, a net); the level's estimate is their average and its variance
 ``V̂_ℓ = s²_r(Ŷ_{ℓ,r})/R``.  A covariance is telescoped as in :mod:`._multilevel`, each term from per-replicate
-means and second moments (:func:`._qmc._combine`, unbiased).
+means and second moments (:func:`._qmc.combine_replicates`, unbiased).
 
 Points per level (Giles & Waterhouse, §3): starting from ``N_ℓ = 64``, double ``N_ℓ`` on the level with the
 largest ``V̂_ℓ/(N_ℓ C_ℓ)`` (the most variance removed per unit of work, as ``V̂_ℓ ∝ 1/N_ℓ`` at worst) until
-``Σ_ℓ V̂_ℓ ≤ ε²/2``; then add a level while the bias estimate of :func:`._multilevel._bias` exceeds ``ε/√2``.
+``Σ_ℓ V̂_ℓ ≤ ε²/2``; then add a level while the bias estimate of :func:`._multilevel.bias_estimate` exceeds ``ε/√2``.
 
 One compiled solve serves every level, point count and scrambling: the ``R`` scramblings share one driver
 (block ``b`` of the run is point block ``b // R`` of scrambling ``b mod R``, so the points ``N … 2N − 1`` of
@@ -43,9 +43,9 @@ from .._system import StochasticSystem
 from .._weak import PlatenWeak2
 from ._cost import MAX_LEVELS, level_cost
 from ._estimate import AbstractStatistic, Stopwatch, as_statistic
-from ._multilevel import MultilevelEstimate, _bias
+from ._multilevel import MultilevelEstimate, bias_estimate
 from ._paths import KEY_PATHS, coupled_paths, coupling_solver, on_device, paths_save, roles_of, safe_sqrt
-from ._qmc import BITS, MAX_DIMENSION, _allowed_solvers, _combine, _ScrambledSobol, scrambled_sobol
+from ._qmc import BITS, MAX_DIMENSION, ScrambledSobol, allowed_solvers, combine_replicates, scrambled_sobol
 
 __all__ = ["multilevel_quasi_monte_carlo"]
 
@@ -70,11 +70,11 @@ class _LevelSobol(AbstractDriver):
         """``Φ⁻¹(u)`` of bridge node ``q`` of every channel, scrambling ``replicate``: ``(len(lanes), m)``."""
         r, d = self.shift.shape
         # the scramblings side by side: node q of scrambling r is node r·d/m + q of one long point
-        flat = _ScrambledSobol(self.v.reshape(r * d, BITS), self.shift.reshape(r * d), 1, self.channels)
+        flat = ScrambledSobol(self.v.reshape(r * d, BITS), self.shift.reshape(r * d), 1, self.channels)
         return flat._normals(block, lanes, replicate * (d // self.channels) + q, dtype)
 
     def _bridge(self, replicate: Array, block: Array, lanes: Array, g: Array, dt: Array) -> Array:
-        """``W`` at grid index ``g`` (as :meth:`._qmc._ScrambledSobol._bridge`, its depth ``log_base`` data)."""
+        """``W`` at grid index ``g`` (as :meth:`._qmc.ScrambledSobol._bridge`, its depth ``log_base`` data)."""
         levels = self.log_base
         n_base = jnp.left_shift(jnp.int32(1), levels)
 
@@ -201,7 +201,7 @@ class _QmcLevels:
         seconds = [s / n for s in self.squares[level]]
         per_mean = sum(w * m for w, m in zip(weights, means))
         per_cov = sum(w * (s - np.einsum("rni,rnj->rnij", m, m)) for w, m, s in zip(weights, means, seconds))
-        combined = [_combine(_host(m), _host(s)) for m, s in zip(means, seconds)]
+        combined = [combine_replicates(_host(m), _host(s)) for m, s in zip(means, seconds)]
         mean = sum(w * c[0] for w, c in zip(weights, combined))
         cov = sum(w * c[1] for w, c in zip(weights, combined))
         return mean, cov, np.var(per_mean, axis=0, ddof=1) / r, np.var(per_cov, axis=0, ddof=1) / r
@@ -269,7 +269,7 @@ def multilevel_quasi_monte_carlo(
     if needs.levy_area is not dfx.BrownianIncrement:
         raise ValueError(
             f"solver={solver!r} needs {needs.levy_area.__name__}, which quasi-Monte Carlo does not draw; "
-            f"allowed: {', '.join(_allowed_solvers())}, or a diffrax solver that needs Brownian increments only."
+            f"allowed: {', '.join(allowed_solvers())}, or a diffrax solver that needs Brownian increments only."
         )
     m = system.noise_dim
     if steps0 * m > MAX_DIMENSION:
@@ -358,7 +358,7 @@ def multilevel_quasi_monte_carlo(
         roles=roles_of(system, names),
         level_means=level_means,
         level_variances=level_vars,
-        bias=_bias(level_means, alpha),
+        bias=bias_estimate(level_means, alpha),
         n_paths_per_level=tuple(samples),
         level_costs=level_costs,
         dt=h0,
@@ -386,7 +386,7 @@ def _adapt(
             moments[worst] = levels.moments(worst)
             variances[worst] = float(_pick(statistic, names, moments[worst][2], moments[worst][3]))
         means = np.stack([_pick(statistic, names, mm[0], mm[1]) for mm in moments])
-        bias = float(_bias(means, alpha))
+        bias = float(bias_estimate(means, alpha))
         if bias <= eps / math.sqrt(2):
             return moments
         if n_levels >= top:

@@ -82,7 +82,7 @@ def sobol_points(v: Array, shift: Array, index: Array, dims: Array) -> Array:
     return _xor_at_bits(v[dims], index) ^ shift[dims]
 
 
-class _ScrambledSobol(AbstractDriver):
+class ScrambledSobol(AbstractDriver):
     """The Wiener driver of one scrambling of quasi-Monte Carlo (module): lane ``l`` of block ``b`` is Sobol'
     point ``b·BLOCK + l``; ``n_base`` base steps (a power of two) and ``channels`` fix the dimension."""
 
@@ -178,7 +178,7 @@ class QuasiMonteCarloEstimate(AbstractEstimate):
     statistic: AbstractStatistic | None = eqx.field(static=True)
 
 
-def _allowed_solvers() -> list[str]:
+def allowed_solvers() -> list[str]:
     return [
         name
         for name, make in SOLVERS.items()
@@ -186,7 +186,7 @@ def _allowed_solvers() -> list[str]:
     ]
 
 
-def _combine(means: Values, seconds: Values):
+def combine_replicates(means: Values, seconds: Values):
     """Mean and covariance from per-replicate means ``(R, n, k)`` and second moments ``(R, n, k, k)``.
 
     ``E[m mᵀ] = μμᵀ + Cov(m)``, and ``Cov(m)`` is estimated without bias by the replicate spread over ``R``:
@@ -255,7 +255,7 @@ def quasi_monte_carlo(
     if needs.levy_area is not dfx.BrownianIncrement:
         raise ValueError(
             f"solver={solver!r} needs {needs.levy_area.__name__}, which quasi-Monte Carlo does not draw; "
-            f"allowed: {', '.join(_allowed_solvers())}, or a diffrax solver that needs Brownian increments only."
+            f"allowed: {', '.join(allowed_solvers())}, or a diffrax solver that needs Brownian increments only."
         )
     n_paths = check_number("n_paths", n_paths, integer=True)
     if n_paths < BLOCK or n_paths & (n_paths - 1) or n_paths > MAX_PATH_INDEX:
@@ -293,7 +293,7 @@ def quasi_monte_carlo(
 
     def replicate(k):
         v, shift = scrambled_sobol(k, n_base * m)
-        driven = eqx.tree_at(lambda s: s.noise, system, _ScrambledSobol(v, shift, n_base, m))
+        driven = eqx.tree_at(lambda s: s.noise, system, ScrambledSobol(v, shift, n_base, m))
 
         def moments(s):
             ens = simulate(s, y0, k, n_paths=n_paths, t0=t0, t1=t1, dt=dt, solver=solver, save=save, batching=batching)
@@ -309,13 +309,15 @@ def quasi_monte_carlo(
     xp = array_module([value for value, _ in runs])
     means = xp.stack([value[1] for value, _ in runs])
     seconds = xp.stack([value[2] for value, _ in runs])
-    mean, cov = _combine(means, seconds)
+    mean, cov = combine_replicates(means, seconds)
     per_cov = seconds - xp.einsum("rni,rnj->rnij", means, means)
     derivatives = None
     if tangents:
         d_means = jnp.stack([tangent[1] for tangent in tangents], axis=1)  # (p, R, n, k)
         d_seconds = jnp.stack([tangent[2] for tangent in tangents], axis=1)
-        d_mean, d_cov = jax.vmap(lambda dm, ds: jax.jvp(_combine, (means, seconds), (dm, ds))[1])(d_means, d_seconds)
+        d_mean, d_cov = jax.vmap(lambda dm, ds: jax.jvp(combine_replicates, (means, seconds), (dm, ds))[1])(
+            d_means, d_seconds
+        )
         d_outer = jnp.einsum("prni,rnj->prnij", d_means, means)
         d_per_cov = d_seconds - d_outer - jnp.swapaxes(d_outer, -1, -2)
         derivatives = Derivatives(d_mean, d_cov, _se(d_means, 1), _se(d_per_cov, 1), wrt)
