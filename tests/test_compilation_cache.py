@@ -68,3 +68,21 @@ def test_the_command_caches_in_the_folder_the_variable_names(tmp_path, monkeypat
     assert main(args) == 0
     requests = events.count("/jax/compilation_cache/compile_requests_use_cache")
     assert requests > 0 and len(list(tmp_path.iterdir())) > 0
+
+
+def test_the_solve_itself_is_cached(tmp_path, caplog):
+    """The compiled solve has no host callback (JAX writes no cache entry for one): a plain simulate leaves its solve
+    in the cache, and its next compilation (as in a new process) is not a persistent-cache miss."""
+    nhsde.enable_compilation_cache(tmp_path)
+    scene = nhsde.scenes.BallOnVibratingPlane()
+
+    def ask():
+        nhsde.simulate(scene.build(), scene.initial_state(), jax.random.key(0), n_paths=64, t1=1.0, dt=0.1)
+
+    ask()
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith("jit__run-")], sorted(tmp_path.iterdir())
+    jax.clear_caches()
+    with jax.explain_cache_misses(True), caplog.at_level("WARNING", logger="jax"):
+        ask()
+    misses = [r.getMessage() for r in caplog.records if "PERSISTENT COMPILATION CACHE MISS" in r.getMessage()]
+    assert misses and not [m for m in misses if "'jit__run'" in m], misses
