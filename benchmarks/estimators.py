@@ -368,7 +368,7 @@ def run_case(case, args):
         label = solver + (" + antithetic" if anti else "")
         levels = 11 if solver == "euler" else 6
         warm = tuple(max(64, (args.piece_paths >> ell) // 64 * 64) for ell in range(levels))
-        ml_args = dict(t1=t1, dt=case["h0"], target=case["target"], solver=solver_object(solver), save=case["save"])
+        ml_args = dict(t1=t1, dt=case["h0"], statistic=case["target"], solver=solver_object(solver), save=case["save"])
         ml_args.update(antithetic=anti, piece_paths=args.piece_paths)
         try:  # one piece on every level: compiles each level's programs before the timed runs
             multilevel_monte_carlo(case["system"], case["y0"], jax.random.key(0), n_paths=warm, **ml_args)
@@ -386,23 +386,24 @@ def run_case(case, args):
             except (nhsde.SimulationError, ValueError) as e:
                 print(f"  MLMC {label:<20} ε={eps:.3g}: {type(e).__name__}: {str(e)[:120]}")
                 continue
-            modelled = est.cost * costs[solver]
+            value, se = est.value()
+            modelled = est.cost.path_steps * costs[solver]
             row = dict(
                 solver=label,
                 eps=eps,
                 seconds=sec,
                 modelled_seconds=modelled,
-                path_steps=est.cost,
-                value=float(est.value),
-                se=float(est.standard_error),
+                path_steps=est.cost.path_steps,
+                value=float(value),
+                se=float(se),
                 bias_estimate=float(est.bias),
-                error=float(est.value) - exact,
+                error=float(value) - exact,
                 n_paths=list(est.n_paths_per_level),
             )
             ml_rows.append(row)
             print(
                 f"  MLMC {label:<20} ε={eps:.3g}: {sec:7.2f} s run ({modelled:.3g} s modelled), "
-                f"{est.cost:.3g} path-steps, error {row['error']:+.2e} (SE {row['se']:.1e}, "
+                f"{est.cost.path_steps:.3g} path-steps, error {row['error']:+.2e} (SE {row['se']:.1e}, "
                 f"bias est. {row['bias_estimate']:.1e}), "
                 f"N_ℓ {row['n_paths']}"
             )
