@@ -47,3 +47,20 @@ def test_runs_beyond_the_paths_of_one_key_draw_from_further_keys(monkeypatch):
     (second,), _ = _paths.coupled_paths(system, Y0, jax.random.fold_in(key, 1), n_paths=64, **args)
     np.testing.assert_array_equal(np.asarray(both), np.concatenate([first, second]))
     assert not np.any(np.asarray(first[:, -1]) == np.asarray(second[:, -1]))
+
+
+def test_runs_of_whole_pieces_keep_the_paths_and_their_initial_states():
+    """Estimator solves go in runs of RUN_PATHS paths, the surplus of the last run dropped: a count that is not a
+    multiple, with one initial state per path, gives the per-path values of one plain ``simulate`` of those paths
+    (the same key, step and base step) bitwise, and a ``y0`` with the wrong number of rows is refused naming it."""
+    n = _paths.RUN_PATHS + 76
+    y0 = jnp.zeros((n, 4)).at[:, 0].set(jnp.linspace(0.0, 1.0, n))
+    steps = nhsde.FixedSteps(0.125, brownian_dt=0.125)
+    save = nhsde.Save(names=("x", "u_x"), n=2, paths=True)
+    args = dict(t0=0.0, t1=1.0, steps=steps, solver="euler", save=save, batching=None)
+    got = _paths.solve_paths(BALL.build(), y0, jax.random.key(5), first_path=0, n_paths=n, **args)
+    ens = nhsde.simulate(BALL.build(), y0, jax.random.key(5), n_paths=n, t1=1.0, steps=steps, save=save)
+    assert got.shape == (n, 2, 2)
+    np.testing.assert_array_equal(np.asarray(got), np.asarray(ens.paths))
+    with pytest.raises(ValueError, match=r"y0 has shape \(5, 4\); expected"):
+        _paths.solve_paths(BALL.build(), y0[:5], jax.random.key(5), first_path=0, n_paths=n, **args)

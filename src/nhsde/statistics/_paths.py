@@ -186,13 +186,24 @@ def solve_paths(system: StochasticSystem, y0, key, *, first_path: int, n_paths: 
     steps = options.get("steps")
     if isinstance(steps, FixedSteps) and steps.brownian_dt is None:  # the base step as data: one program for all
         options = {**options, "steps": FixedSteps(steps.dt, brownian_dt=steps.dt, max_steps=steps.max_steps)}
+    rows = np.ndim(y0) == 2  # a state per path: each run takes its rows, its surplus paths start from the last
+    if rows and np.shape(y0)[0] != n_paths:
+        raise ValueError(f"y0 has shape {np.shape(y0)}; expected ({n_paths}, {np.shape(y0)[1]}): one row per path.")
+    done = 0
     for k, first, size in key_segments(key, first_path, n_paths):
         for start in range(first, first + size, RUN_PATHS):
+            keep = min(RUN_PATHS, first + size - start)
+            start_states = y0
+            if rows:
+                xp = array_module(y0)
+                part = y0[done : done + keep]
+                start_states = xp.concatenate([part, xp.repeat(part[-1:], RUN_PATHS - keep, axis=0)])
             with warnings.catch_warnings():  # coarse steps are the estimators' own: their bias is measured and priced
                 warnings.simplefilter("ignore", StationaryVarianceWarning)
-                ens = simulate(system, y0, k, n_paths=RUN_PATHS, first_path=start, **options)
+                ens = simulate(system, start_states, k, n_paths=RUN_PATHS, first_path=start, **options)
             assert ens.paths is not None
-            parts.append((ens.paths, min(RUN_PATHS, first + size - start)))
+            parts.append((ens.paths, keep))
+            done += keep
     xp = array_module([p for p, _ in parts])
     kept = [(np.asarray(p) if xp is np else p)[:keep] for p, keep in parts]
     return kept[0] if len(kept) == 1 else xp.concatenate(kept)
