@@ -284,3 +284,21 @@ def test_reaches_the_target_from_a_coarsest_step_above_one():
     errors = np.array([(r.value()[0] - exact) / r.rmse for r in runs])
     assert all(r.pilot[0].dts[0] == 2.5 for r in runs)
     assert np.sqrt(np.mean(errors**2)) <= math.sqrt(scipy.stats.chi2.ppf(0.99, 20) / 20), (errors, runs[0].report())
+
+
+def test_the_default_coarsest_step_is_halved_while_the_pilot_blows_up():
+    """dy = −y³ dt + dW from y0 = 3 to t1 = 4: Euler (and weak order 2) at the default h₀ = 1, ½ and ¼ overflow within
+    a few steps (3 − 27h, then the cube of that), at ⅛ they contract.  The pilot halves h₀ until its paths survive,
+    its failed attempts are counted in the work, and the answer meets the target by its own estimate."""
+    cubic = nhsde.StochasticSystem(
+        drift_fn=lambda t, y, p: -(y**3),
+        diffusion_fn=lambda t, y, p: p * jnp.ones((1, 1), y.dtype),
+        params=jnp.float32(1.0),
+        layout=nhsde.StateLayout(("y",), ("independent_coordinate",)),
+        noise_dim=1,
+        additive_noise=True,
+    )
+    eps = 0.05
+    r = to_accuracy(cubic, jnp.full(1, 3.0), jax.random.key(6), t1=4.0, statistic=nhsde.statistics.Mean("y"), rmse=eps)
+    assert r.pilot[0].dts[0] == 0.125, r.report()
+    assert r.pilot_cost.path_steps > sum(p.work for p in r.pilot) and r.estimated_rmse <= 1.5 * eps, r.report()
