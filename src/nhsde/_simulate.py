@@ -1,8 +1,11 @@
 """Ensemble integration of a :class:`StochasticSystem` on diffrax: :func:`simulate`.
 
-Fixed steps: one ``lax.scan`` over steps of a diffrax solver (``solver.step``),
+Fixed steps: one loop over steps of a diffrax solver (``solver.step``),
 vmapped over blocks of paths and their lanes, each block's noise drawn once per
-step by the system's driver.  (``diffeqsolve``'s own loop on a batched state
+step by the system's driver.  The step count, the step and the driver's base step
+are data of the compiled program (``_Grid``), so one program serves every step;
+where a reverse-mode trace may differentiate the run (inside a user's ``jit`` or
+``grad``) they are static and the loops are scans.  (``diffeqsolve``'s own loop on a batched state
 took 2.0× the time of a hand-fused scan in the design measurement recorded in
 ``benchmarks/RESULTS.md``.)  Adaptive steps: ``diffeqsolve`` with a
 ``PIDController`` and a ``VirtualBrownianTree`` per path.
