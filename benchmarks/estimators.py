@@ -38,7 +38,8 @@ persistent compilation cache off unless the row is about it), float64:
     vibrating plane (E[H](1)), at relative RMSE 1e-2 and 1e-3: seconds of the first call
     (imports excluded, compilation included), XLA programs compiled, realised error against the
     exact value (the body: against the recorded reference, whose own SE is 6.6e-4);
-(b) the same call again in the same process (warm: nothing left to compile);
+(b) the same call again in the same process (warm: nothing left to compile), and for ``to_accuracy`` a
+    third time (its second call can still compile: it prices more pilots when its first pilot ran fast);
 (c) the command: ``nhsde simulate chaplygin-sleigh --relative-rmse 1e-2`` against the plain
     ``nhsde simulate chaplygin-sleigh`` (defaults), wall seconds of each process;
 (d) the persistent compilation cache: the README's main job
@@ -52,7 +53,9 @@ h0 (``SCENE:REL:to_accuracy:dt=H``).  ``--quick``: the sleigh at 1e-2 only (``--
 choose), (c), and (d) for the main job only (a few minutes, most of it to_accuracy compiling).
 ``--src DIR``: this process and its children import nhsde from DIR, e.g. a clean
 ``git archive HEAD src | tar -x -C /tmp/clean`` while the work tree is being edited.
-``--rows``: only these (a, b) rows.  Writes
+``--rows``: only these (a, b) rows; ``SCENE:REL:mlqmc[:dt=H][:solver=NAME]`` is
+:func:`nhsde.statistics.multilevel_quasi_monte_carlo` at the case's h0 (Euler unless named), measured
+the same way (first, warm, programs, realised error) and paired with the plain row in the table.  Writes
 benchmarks/results/first_answer.json (``_quick`` with ``--quick``) after every row and prints the table.
 """
 
@@ -494,9 +497,10 @@ def count_compilations():
 def child(row):
     """One row ``SCENE:REL:METHOD`` (METHOD ``to_accuracy`` or ``plain``) in this fresh process: the first call
     (compilation included), then the same call again (warm); prints one JSON line."""
-    scene, rel, method, *option = row.split(":")  # option: dt=H, to_accuracy's coarsest step (default its own)
+    scene, rel, method, *option = row.split(":")  # option: dt=H, the coarsest step (to_accuracy: default its own)
     rel = float(rel)
-    h0 = {k: float(v) for k, v in (o.split("=") for o in option)}.get("dt")
+    options = dict(o.split("=") for o in option)  # dt=H; mlqmc also solver=NAME (default euler)
+    h0 = float(options["dt"]) if "dt" in options else None
     compiled = count_compilations()
     case = CASES[scene]()
     exact = BODY_REFERENCE[0] if case["exact"] is None else case["exact"]
@@ -511,6 +515,27 @@ def child(row):
             jax.block_until_ready(ens.mean)
             value, se = pick(case, ens)
             return value, se, dict(solver=solver, dt=dt, n_paths=n_paths)
+        if method == "mlqmc":  # multilevel randomised QMC at the case's h0 ((t1 − t0)/h0 a power of two)
+            solver = options.get("solver", "euler")
+            est = nhsde.statistics.multilevel_quasi_monte_carlo(
+                case["system"],
+                case["y0"],
+                jax.random.key(6),
+                t1=case["t1"],
+                dt=case["h0"] if h0 is None else h0,
+                statistic=case["target"],
+                rmse=eps,
+                solver=solver_object(solver),
+                save=case["save"],
+            )
+            value, se = est.value()
+            extra = dict(
+                choice=f"MLQMC {solver}, {len(est.n_paths_per_level)} levels, N_l·R {list(est.n_paths_per_level)}",
+                bias_estimate=float(est.bias),
+                work=est.cost.path_steps,
+                compile_seconds=est.cost.compile_seconds,
+            )
+            return float(value), float(se), extra
         res = nhsde.statistics.to_accuracy(
             case["system"],
             case["y0"],
@@ -541,7 +566,9 @@ def child(row):
             )
         return float(value), float(se), dict(choice=res.choice, bias_estimate=res.bias, **extra)
 
-    for phase in ("first", "warm"):
+    # a third call where the second still compiled (to_accuracy prices further pilots when its first pilot ran
+    # fast, i.e. when warm): the call with nothing left to compile
+    for phase in ("first", "warm") if method == "plain" else ("first", "warm", "third"):
         del compiled[:]
         start = time.perf_counter()
         value, se, extra = call()
@@ -711,7 +738,7 @@ def first_answer_table(api, cli, cache):
 
     for r in api:
         scene, rel, method, *option = r["row"].split(":")
-        if method != "to_accuracy":
+        if method not in ("to_accuracy", "mlqmc"):
             continue
         p = by_row.get(f"{scene}:{rel}:plain")
         rel = " ".join([rel, *option])
