@@ -67,6 +67,10 @@ from ._sensitivities import check_wrt
 
 __all__ = ["AccuracyAlternative", "AccuracyResult", "to_accuracy"]
 
+EXPLORE_ABOVE = 64
+"""A further pilot runs (by default) only when the best run so far is predicted to take more than this many times
+the first pilot's path-steps: below, compiling and running another pilot costs more than it can save."""
+
 MAX_PILOT_HALVINGS = 10
 """The default coarsest step is halved while the pilot's paths fail, down to ``(t1 − t0)/2^10``."""
 
@@ -130,10 +134,11 @@ def to_accuracy(
       counted in Euler path-steps (times the measured cost ratio ``κ``, in the report's note).
     - ``explore``: price every alternative.  By default (``False``) the first solver's pilot (weak order 2
       where the driver allows it) prices its plain, extrapolated and multilevel runs, and a further pilot (another
-      solver, the control variate, quasi-Monte Carlo) runs only while the best run so far is predicted to take
-      longer than that pilot would, compiling included (both measured on the first pilot, so the choice depends on
-      the machine): a loose target is answered after one compiled program, a tight one after all.  Alternatives not
-      priced are listed with the reason.
+      solver, the control variate, quasi-Monte Carlo) runs only when the best run so far is predicted to take more
+      than :data:`EXPLORE_ABOVE` times the first pilot's path-steps (the rule counts work, not seconds, so a key
+      gives the same choice on any machine and with any cache): a loose target is answered after one compiled
+      program, a tight one after all.  Alternatives not priced are listed with the reason; a further solver whose
+      pilot fails at the step is listed as not applying.
     - ``wrt``: names of scalar parameters (``('eps', 'nu')``): the statistic's derivatives in them with their
       standard errors (``derivative()``), from the chosen estimator's per-path tangents.
     """
@@ -200,9 +205,8 @@ def to_accuracy(
     # weak order 2 first: the solver most alternatives choose; the pilot keys stay each solver's own
     order = sorted(range(len(candidates)), key=lambda c: -candidates[c].order)
 
-    def pilot_of(c: int, h0: float) -> tuple[PilotSummary, Cost]:
-        pilot_watch = Stopwatch()
-        p = run_pilot(
+    def pilot_of(c: int, h0: float) -> PilotSummary:
+        return run_pilot(
             system,
             y0,
             fold_key(pilot_key, c),
@@ -218,12 +222,11 @@ def to_accuracy(
             statistic=statistic,
             timed=timed,
         )
-        return p, pilot_watch.cost(p.work)
 
     failed_work = 0.0  # the default coarsest step is halved while the pilot's paths fail there (a nonlinear blow-up)
     while True:
         try:
-            first, first_cost = pilot_of(order[0], h0)
+            first = pilot_of(order[0], h0)
             break
         except (SimulationError, ValueError) as e:
             blown_up = isinstance(e, SimulationError) or "non-finite values" in str(e)
@@ -250,30 +253,33 @@ def to_accuracy(
         pilot_paths=pilot_paths,
         pilot_levels=pilot_levels,
     )
-    # a further pilot pays only while the best run so far takes longer than that pilot would (compiling its
-    # program and running it): both measured on the first pilot
-    pilot_seconds = first_cost.seconds
-    seconds_per_step = max(first_cost.seconds - first_cost.compile_seconds, 0.0) / max(first.work, 1.0)
     priced = {order[0]: first}
     alternatives: list[AccuracyAlternative] = solver_alternatives(
         system, y0, run_key, candidates[order[0]], first, rmse, h0, steps0, use_anti, antithetic, common
     )
 
     def worth_pricing(name: str, method: str, label: str) -> bool:
-        runnable = [a.cost for a in alternatives if a.run is not None and math.isfinite(a.cost)]
-        best = min(runnable, default=math.inf) * seconds_per_step
-        if explore or best > pilot_seconds:
+        """A further pilot (compiling a program and running) pays only for a run far longer than the first pilot."""
+        best = min((a.cost for a in alternatives if a.run is not None), default=math.inf)
+        if explore or best > EXPLORE_ABOVE * first.work:
             return True
         note = (
-            f"not priced: the best run so far is predicted to take {best:.2g} s, less than its pilot would "
-            f"(≈ {pilot_seconds:.2g} s, compiling included); explore=True prices it"
+            f"not priced: the best run so far is predicted at {best:.2g} path-steps, less than {EXPLORE_ABOVE}× "
+            f"the first pilot's {first.work:.2g} (another pilot compiles a program); explore=True prices it"
         )
         alternatives.append(AccuracyAlternative(name, method, label, False, math.inf, note=note))
         return False
 
     for c in order[1:]:
         if worth_pricing(f"any, {candidates[c].label}", "-", candidates[c].label):
-            priced[c], _ = pilot_of(c, h0)
+            try:
+                priced[c] = pilot_of(c, h0)
+            except (SimulationError, ValueError) as e:  # this solver's paths blow up at h0 (another's did not)
+                note = f"does not apply at dt={h0:g}: its pilot failed: {str(e).splitlines()[0][:160]}"
+                alternatives.append(
+                    AccuracyAlternative(f"any, {candidates[c].label}", "-", "", False, math.inf, note=note)
+                )
+                continue
             alternatives += solver_alternatives(
                 system, y0, run_key, candidates[c], priced[c], rmse, h0, steps0, use_anti, antithetic, common
             )
