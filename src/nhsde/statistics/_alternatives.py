@@ -11,7 +11,7 @@ from typing import Any
 import jax
 
 from .._brownian import BLOCK
-from .._ensemble import Save
+from .._ensemble import Save, SimulationError
 from .._misc import fold_key
 from .._options import FixedSteps
 from .._simulate import MAX_PATH_INDEX
@@ -186,7 +186,7 @@ def control_variate_alternative(system, y0, pilot_key, run_key, eps, h0, steps0,
             )
             for h in (h_a, h_b)
         ]
-    except (ValueError, TypeError, NotImplementedError) as e:
+    except (ValueError, TypeError, NotImplementedError, SimulationError) as e:  # paths blowing up: not at this step
         return AccuracyAlternative(name, "control variate", "euler", False, math.inf, note=f"does not apply: {e}")
     (va, sa), (vb, sb) = (tuple(float(x) for x in r.value(statistic)) for r in runs)
     if not all(math.isfinite(x) for x in (va, sa, vb, sb)):
@@ -261,9 +261,9 @@ def quasi_monte_carlo_alternative(
 
     try:
         res, _ = pilot(key)
-    except (ValueError, TypeError) as e:
-        return skip(f"does not apply: {e}")
-    _, seconds = pilot(fold_key(key, 1))  # compiled now: time a second run
+        _, seconds = pilot(fold_key(key, 1))  # compiled now: time a second run
+    except (ValueError, TypeError, SimulationError) as e:  # paths blowing up: not at this step
+        return skip(f"does not apply: {str(e).splitlines()[0][:200]}")
     path_steps = r_pilot * n_q * steps_b
     rate = seconds / path_steps
     # κ against plain Euler Monte Carlo at the same step, in the compiled program the Euler alternatives run (the
