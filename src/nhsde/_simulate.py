@@ -99,7 +99,7 @@ class _Plan:
     raise_on_failure: bool
     traced_stability: bool
     poll: bool  # Ctrl-C polled in the step loop (a host callback: the program cannot enter the persistent cache)
-    params_checked: bool  # concrete parameters, their ranges checked before the run
+    params_checked: bool  # concrete parameters (or their tangents), their ranges checked before the run
 
     @property
     def intervals(self) -> int:
@@ -347,7 +347,8 @@ def _run(system: StochasticSystem, needs: SolverNeeds, y0, key, first_path, grid
     if plan.traced_stability:  # traced parameters: the stability limit is checked here, with the eager check's cause
         step = jnp.asarray(grid.work_dt, _work_dtype(y0.dtype))
         unstable, off, _ = _linear_modes(system.linear_drift, needs, jax.lax.stop_gradient(params), step)
-        jax.debug.callback(functools.partial(_warn_variance, solver=needs.name), off, step)
+        if not plan.params_checked:  # (the estimators' forward-mode tangents: their own steps, their bias measured)
+            jax.debug.callback(functools.partial(_warn_variance, solver=needs.name), off, step)
     return ts, sums, failures, failed, paths, unstable
 
 
@@ -720,7 +721,8 @@ def simulate(
         raise_on_failure=on_failure == "raise",
         traced_stability=_checks_linear(system, needs) and not is_concrete(system.params),
         poll=n_paths * n_steps * system.state_dim > POLL_ABOVE,
-        params_checked=is_concrete(system.params),
+        # forward mode of concrete values (the estimators' tangents): the primal values were checked when built
+        params_checked=is_concrete(system.params) or _FORWARD_ONLY.get(),
     )
     meter = dfx.NoProgressMeter() if progress_meter is None else progress_meter
     if not isinstance(meter, dfx.AbstractProgressMeter):

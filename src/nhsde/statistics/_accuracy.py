@@ -114,7 +114,8 @@ def to_accuracy(
     - ``dt`` (or ``steps=FixedSteps(dt)``): the coarsest step ``h₀`` considered (default
       ``(t1 − t0)/4``, halved until every solver considered is inside its stability limit on the
       system's declared friction, and again while the pilot's paths fail there, down to ``(t1 − t0)/2^10``, their
-      work counted); pilots run at ``h₀ … h₀ 2^{1−pilot_levels}``, every alternative at ``h₀`` or finer.
+      work counted; if the chosen run's paths still fail, every alternative is priced again from half that step,
+      once); pilots run at ``h₀ … h₀ 2^{1−pilot_levels}``, every alternative at ``h₀`` or finer.
     - ``solver``: consider only this one (``PlatenWeak2`` needs ``increments='gaussian'``),
       of weak order ``weak_order`` (default 2 for ``PlatenWeak2``, else 1); default: Euler–Maruyama
       and ``PlatenWeak2(increments='gaussian')``, those the system's driver allows.
@@ -142,6 +143,7 @@ def to_accuracy(
     - ``wrt``: names of scalar parameters (``('eps', 'nu')``): the statistic's derivatives in them with their
       standard errors (``derivative()``), from the chosen estimator's per-path tangents.
     """
+    call = dict(locals())  # the arguments, for a retry from a finer coarsest step
     watch = Stopwatch()
     if not isinstance(system, StochasticSystem):
         raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
@@ -329,7 +331,20 @@ def to_accuracy(
         reason += f", {key_of(ranked[1]) / key_of(chosen):.2g}× below the next, {ranked[1].name}"
     assert chosen.run is not None
     run_watch = Stopwatch()
-    estimate, bias = chosen.run()
+    try:
+        estimate, bias = chosen.run()
+    except SimulationError as e:  # a rare path blew up at a step the pilot's paths survived: from half the step
+        if not (default_step and steps0 < 2**MAX_PILOT_HALVINGS):
+            raise
+        failed = watch.cost(pilot_work + chosen.cost / chosen.kappa)  # this attempt (its run's work: the plan)
+        retry = to_accuracy(**{**call, "dt": h0 / 2})
+        return dataclasses.replace(
+            retry,
+            cost=retry.cost + failed,
+            pilot_cost=retry.pilot_cost + Cost(failed.path_steps),
+            reason=f"{retry.reason}; at dt={h0:g} {chosen.name} failed ({str(e).splitlines()[0][:120]}), "
+            f"so every alternative was priced again from dt={h0 / 2:g}",
+        )
     run_cost = run_watch.cost(estimate.cost.path_steps)
     return AccuracyResult(
         statistic=statistic,
