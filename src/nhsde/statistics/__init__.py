@@ -11,8 +11,9 @@
   (Richardson–Romberg / Talay–Tubaro), :func:`multilevel_monte_carlo` (Giles),
   :func:`antithetic` paths, :func:`control_variate` (the linearised system
   driven by the same increments), :func:`quasi_monte_carlo` (scrambled Sobol'
-  points through a Brownian bridge); :func:`to_accuracy` chooses among them from a
-  pilot run for a requested RMSE.
+  points through a Brownian bridge), :func:`multilevel_quasi_monte_carlo`; :func:`to_accuracy` chooses among
+  them from a pilot run for a requested RMSE.  Each returns an :class:`AbstractEstimate` (moments, standard
+  errors, ``derivatives``, measured ``cost``); a statistic is named once, :class:`Mean` or :class:`Covariance`.
 - Derivatives of simulated moments with their standard errors: :func:`moment_sensitivities`.
 - The Fokker–Planck equation on a grid (1 and 2 components):
   :func:`stationary_fokker_planck`, :func:`fokker_planck`.
