@@ -49,6 +49,22 @@ def test_runs_beyond_the_paths_of_one_key_draw_from_further_keys(monkeypatch):
     assert not np.any(np.asarray(first[:, -1]) == np.asarray(second[:, -1]))
 
 
+def test_large_counts_run_in_large_runs_with_the_same_paths(monkeypatch):
+    """From LARGE_RUNS_FROM paths on, whole large runs (one program, 8× the paths per call) then small runs cover
+    the count: the per-path values are bitwise those of one plain ``simulate`` of the same paths."""
+    monkeypatch.setattr(_paths, "LARGE_RUN_PATHS", 256)
+    monkeypatch.setattr(_paths, "LARGE_RUNS_FROM", 512)
+    monkeypatch.setattr(_paths, "RUN_PATHS", 128)
+    assert _paths.runs(300) == [128, 128, 128]
+    assert _paths.runs(700) == [256, 256, 128, 128]
+    steps = nhsde.FixedSteps(0.125, brownian_dt=0.125)
+    save = nhsde.Save(names=("x", "u_x"), n=2, paths=True)
+    args = dict(t0=0.0, t1=1.0, steps=steps, solver="euler", save=save, batching=None)
+    got = _paths.solve_paths(BALL.build(), Y0, jax.random.key(5), first_path=64, n_paths=700, **args)
+    ens = nhsde.simulate(BALL.build(), Y0, jax.random.key(5), n_paths=700, first_path=64, **args)
+    np.testing.assert_array_equal(np.asarray(got), np.asarray(ens.paths))
+
+
 def test_runs_of_whole_pieces_keep_the_paths_and_their_initial_states():
     """Estimator solves go in runs of RUN_PATHS paths, the surplus of the last run dropped: a count that is not a
     multiple, with one initial state per path, gives the per-path values of one plain ``simulate`` of those paths
