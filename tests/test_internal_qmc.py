@@ -7,7 +7,13 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.stats import qmc
 
-from nhsde.statistics._qmc import ScrambledSobol, _direction_numbers, scrambled_sobol, sobol_points
+from nhsde.statistics._qmc import (
+    ScrambledSobol,
+    _direction_numbers,
+    scrambled_sobol,
+    sobol_points,
+    stacked_scramblings,
+)
 
 
 def test_unscrambled_points_are_scipys():
@@ -36,7 +42,8 @@ def test_scrambled_points_stratify_every_dimension():
 
 def test_increments_have_the_wiener_law_and_sum_to_the_endpoint():
     n_base, m, blocks = 16, 2, 64  # 4096 paths
-    driver = ScrambledSobol(*scrambled_sobol(jax.random.key(2), n_base * m), n_base, m)
+    v, shift = stacked_scramblings(jax.random.key(2), 2, n_base * m)  # two scramblings of 2048 points
+    driver = ScrambledSobol(v=v, shift=shift, blocks=jnp.int32(blocks // 2), n_base=n_base, channels=m)
     dt = jnp.float64(0.05)
 
     def increments(substeps):
@@ -52,10 +59,12 @@ def test_increments_have_the_wiener_law_and_sum_to_the_endpoint():
     # tolerances of independent samples (the Sobol' points do better)
     np.testing.assert_array_less(np.abs(w.mean(0)), 4 * np.sqrt(dt / n))
     np.testing.assert_array_less(np.abs(w.var(0) / dt - 1), 4 * np.sqrt(2 / n))
-    # W(T) from the root of the bridge: the increments telescope to it
-    lanes = jnp.arange(64, dtype=jnp.uint32)
-    endpoint = jax.vmap(lambda b: driver._bridge(b, lanes, jnp.int32(n_base), dt))(jnp.arange(blocks, dtype=jnp.uint32))
-    endpoint = np.asarray(endpoint).reshape(n, m)
+    # W(T) from the root of the bridge (replicate b // 32, point block b mod 32): the increments telescope to it
+    lanes, b = jnp.arange(64, dtype=jnp.uint32), jnp.arange(blocks)
+    root = jax.vmap(lambda r, p: driver._interval(r, p, lanes, jnp.int32(0), 0, dt)[2])(
+        b // 32, (b % 32).astype(jnp.uint32)
+    )
+    endpoint = np.asarray(root).reshape(n, m)
     np.testing.assert_allclose(w.sum(1), endpoint, rtol=0, atol=1e-13)
     np.testing.assert_array_less(np.abs(endpoint.var(0) / (n_base * dt) - 1), 4 * np.sqrt(2 / n))
     # a step of two base steps is their sum: brownian_dt works on the same path

@@ -25,27 +25,25 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any, ClassVar
+from typing import Any
 
-import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Int, UInt
 
-from .._brownian import BLOCK, AbstractDriver
+from .._brownian import BLOCK
 from .._ensemble import Save
 from .._misc import check_key, check_number, check_span, check_steps, fold_key, is_concrete
 from .._options import AbstractSteps, Batching
-from .._solvers import solver_needs
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
 from ._cost import MAX_LEVELS, level_cost
 from ._estimate import AbstractStatistic, Stopwatch, as_statistic
 from ._multilevel import MultilevelEstimate, bias_estimate
 from ._paths import KEY_PATHS, coupled_paths, coupling_solver, on_device, paths_save, roles_of, safe_sqrt
-from ._qmc import BITS, MAX_DIMENSION, ScrambledSobol, allowed_solvers, combine_replicates, scrambled_sobol
+from ._qmc import MAX_DIMENSION, SobolDriver, check_solver, combine_replicates, stacked_scramblings
 
 __all__ = ["multilevel_quasi_monte_carlo"]
 
@@ -53,35 +51,30 @@ RUN_LIMIT = 2**18
 """Most paths solved at once: a larger doubling runs in pieces, reduced into sums as they come."""
 
 
-class _LevelSobol(AbstractDriver):
-    """The Wiener driver of one level of multilevel QMC (module): ``R`` scramblings of ``d`` dimensions, lane ``l``
-    of block ``b`` point ``(b // R)·BLOCK + l`` of scrambling ``b mod R``; ``2^log_base`` base steps, as data."""
+class _LevelSobol(SobolDriver):
+    """The driver of one level of multilevel QMC (module): ``R`` scramblings of ``d`` dimensions, lane ``l`` of
+    block ``b`` point ``(b // R)·BLOCK + l`` of scrambling ``b mod R``; ``2^log_base`` base steps, as data."""
 
     v: UInt[Array, "r d 32"]
     shift: UInt[Array, "r d"]
     log_base: Int[Array, ""]
     channels: int = eqx.field(static=True)
-    continuous: ClassVar[bool] = True
 
-    def variance_rate(self):
-        return jnp.ones(())
-
-    def _normals(self, replicate: Array, block: Array, lanes: Array, q: Array, dtype) -> Array:
-        """``Φ⁻¹(u)`` of bridge node ``q`` of every channel, scrambling ``replicate``: ``(len(lanes), m)``."""
-        r, d = self.shift.shape
-        # the scramblings side by side: node q of scrambling r is node r·d/m + q of one long point
-        flat = ScrambledSobol(self.v.reshape(r * d, BITS), self.shift.reshape(r * d), 1, self.channels)
-        return flat._normals(block, lanes, replicate * (d // self.channels) + q, dtype)
-
-    def _bridge(self, replicate: Array, block: Array, lanes: Array, g: Array, dt: Array) -> Array:
-        """``W`` at grid index ``g`` (as :meth:`._qmc.ScrambledSobol._bridge`, its depth ``log_base`` data)."""
+    def _increment(self, block, k0, dt, substeps):
+        """As :meth:`._qmc.ScrambledSobol._increment`, the depth data: step ``k0`` of ``s`` base steps (1 or 2,
+        a power of two) is the dyadic interval ``[k0·s, (k0 + 1)·s]``, ``log_base − log₂ s`` levels down."""
+        r = self.shift.shape[0]
+        replicate, points = block % r, (block // r).astype(jnp.uint32)
+        lanes = jnp.arange(BLOCK, dtype=jnp.uint32)
         levels = self.log_base
         n_base = jnp.left_shift(jnp.int32(1), levels)
+        substeps = jnp.asarray(substeps, jnp.int32)
+        g, depth = k0 * substeps, levels - (jnp.int32(31) - jax.lax.clz(substeps))
 
         def normals(q):
-            return self._normals(replicate, block, lanes, q, dt.dtype)
+            return self._normals(replicate, points, lanes, q, dt.dtype)
 
-        w_lo = jnp.zeros((lanes.shape[0], self.channels), dt.dtype)
+        w_lo = jnp.zeros((BLOCK, self.channels), dt.dtype)
         w_hi = jnp.sqrt(n_base.astype(dt.dtype) * dt) * normals(jnp.zeros((), jnp.int32))
 
         def ancestor(level, carry):  # the ancestors of g, coarse to fine
@@ -93,24 +86,8 @@ class _LevelSobol(AbstractDriver):
             left = g < mid
             return jnp.where(left, lo, mid), jnp.where(left, w_lo, w_mid), jnp.where(left, w_mid, w_hi)
 
-        lo, w_lo, w_hi = jax.lax.fori_loop(1, levels + 1, ancestor, (jnp.zeros((), jnp.int32), w_lo, w_hi))
-        return jnp.where(g == lo, w_lo, w_hi)
-
-    def block_increment(self, key, block, k0, dt, shape, substeps, levy_area):
-        del key  # the scramblings are the randomness; the lanes are Sobol' points
-        if levy_area is not dfx.BrownianIncrement:
-            raise ValueError(
-                f"quasi-Monte Carlo draws Brownian increments only; this solver asks for {levy_area.__name__}."
-            )
-        if shape != (self.channels,):
-            raise ValueError(f"the driver was built for {self.channels} channels; the system has shape {shape}.")
-        r = self.shift.shape[0]
-        block = jnp.asarray(block).astype(jnp.int32)
-        replicate, points = block % r, (block // r).astype(jnp.uint32)
-        lanes = jnp.arange(BLOCK, dtype=jnp.uint32)
-        k0 = jnp.asarray(k0, jnp.int32)
-        g1, g0 = (k0 + 1) * substeps, k0 * substeps
-        return self._bridge(replicate, points, lanes, g1, dt) - self._bridge(replicate, points, lanes, g0, dt)
+        _, w_lo, w_hi = jax.lax.fori_loop(1, depth + 1, ancestor, (jnp.zeros((), jnp.int32), w_lo, w_hi))
+        return w_hi - w_lo
 
 
 def _host(x) -> Any:
@@ -142,11 +119,9 @@ class _QmcLevels:
     def driver(self, level: int) -> _LevelSobol:
         while len(self.drivers) <= level:
             ell, m = len(self.drivers), self.system.noise_dim
-            key = fold_key(self.key, ell)
-            scrambled = [scrambled_sobol(fold_key(key, r), self.dimension) for r in range(self.replicates)]
-            v, shift = (jax.device_put(np.stack([np.asarray(s[i]) for s in scrambled])) for i in (0, 1))
+            v, shift = stacked_scramblings(fold_key(self.key, ell), self.replicates, self.dimension)
             log_base = jax.device_put(np.asarray((self.steps0 << ell).bit_length() - 1, np.int32))
-            self.drivers.append(_LevelSobol(v, shift, log_base, m))
+            self.drivers.append(_LevelSobol(v=v, shift=shift, log_base=log_base, channels=m))
         return self.drivers[level]
 
     def grow(self, level: int, n_points: int) -> None:
@@ -234,7 +209,8 @@ def multilevel_quasi_monte_carlo(
       ``n_points``: a fixed ``(N_0, …, N_L)`` points per scrambling, powers of two ≥ 64.
     - ``replicates``: ``R``, the independent scramblings per level (≥ 2; the variances come from their spread).
 
-    Only Wiener drivers, and solvers that need Brownian increments only (Euler, Milstein, Heun, …); levels stop
+    Only Wiener drivers, and solvers that need Brownian increments only (Euler, Milstein, Heun, …) or
+    ``nhsde.PlatenWeak2(increments='gaussian')``; levels stop
     where ``(t1 − t0)/h_ℓ × channels`` would exceed the 21201 dimensions of the direction numbers.
     ``n_paths_per_level`` counts ``N_ℓ R`` samples, ``level_variances`` are ``V̂_ℓ N_ℓ R`` (per sample, as
     :class:`MultilevelEstimate`'s) and ``level_costs`` path-steps per sample (the QMC driver's path-step costs
@@ -265,12 +241,7 @@ def multilevel_quasi_monte_carlo(
             f"system.noise={type(system.noise).__name__} has jumps; multilevel quasi-Monte Carlo needs a Wiener "
             "driver (nhsde.noise.Wiener)."
         )
-    needs = solver_needs(coupling_solver(solver), system)
-    if needs.levy_area is not dfx.BrownianIncrement:
-        raise ValueError(
-            f"solver={solver!r} needs {needs.levy_area.__name__}, which quasi-Monte Carlo does not draw; "
-            f"allowed: {', '.join(allowed_solvers())}, or a diffrax solver that needs Brownian increments only."
-        )
+    check_solver(coupling_solver(solver), system)
     m = system.noise_dim
     if steps0 * m > MAX_DIMENSION:
         raise ValueError(

@@ -8,9 +8,12 @@ point ``i`` of a scrambled Sobol' sequence in ``d = n·m`` dimensions (direct or
 Grid index ``g = odd·2^j`` is node ``q(g) = 2^(L−j−1) + (g >> (j+1))`` of the bridge in
 breadth-first order, and node ``q`` of channel ``c`` takes Sobol' dimension ``q·m + c``:
 the coarse levels, which carry most of the variance, get the best-distributed
-dimensions.  ``W(g)`` is computed from the root down through its ``L`` ancestors, so the
-increment over any step is a function of ``(scrambling, path, step)`` alone, as the
-counter-based Wiener driver's, and runs are independent of the chunking.
+dimensions.  A step of ``s = 2^j`` base steps, ``[k s, (k + 1) s]``, is an interval of
+the bridge: one walk from the root down through its ``L − j`` ancestors gives both of
+its ends (``L − j + 1`` normals per channel), so the increment over any step is a
+function of ``(scrambling, path, step)`` alone, as the counter-based Wiener driver's,
+and runs are independent of the chunking.  All ``R`` scramblings run as one solve of
+``R·N`` paths, path ``i`` point ``i mod N`` of scrambling ``i // N``.
 
 Scrambling (Owen 1998; Matoušek 1998): a random linear matrix scramble, per dimension a
 lower-triangular binary matrix with unit diagonal acting on the bits (most significant
@@ -22,6 +25,8 @@ random digital shift ``s``.  Each point is then uniform on the unit cube and the
 
 from __future__ import annotations
 
+import abc
+import dataclasses
 import functools
 import math
 from collections.abc import Sequence
@@ -42,6 +47,7 @@ from .._options import AbstractSteps, Batching
 from .._simulate import MAX_PATH_INDEX, simulate
 from .._solvers import SOLVERS, solver_needs
 from .._system import StochasticSystem
+from .._weak import GaussianWeakIncrement
 from ._estimate import AbstractEstimate, AbstractStatistic, Cost, Derivatives, Stopwatch, Values
 from ._paths import array_module, on_device, roles_of, with_tangents
 from ._sensitivities import check_wrt
@@ -82,25 +88,29 @@ def sobol_points(v: Array, shift: Array, index: Array, dims: Array) -> Array:
     return _xor_at_bits(v[dims], index) ^ shift[dims]
 
 
-class ScrambledSobol(AbstractDriver):
-    """The Wiener driver of one scrambling of quasi-Monte Carlo (module): lane ``l`` of block ``b`` is Sobol'
-    point ``b·BLOCK + l``; ``n_base`` base steps (a power of two) and ``channels`` fix the dimension."""
+class SobolDriver(AbstractDriver):
+    """A Wiener driver from ``R`` scramblings of Sobol' points through a Brownian bridge (module): the scramblings
+    stacked, ``v`` ``(R, d, 32)`` and ``shift`` ``(R, d)``; subclasses place the paths (``_increment``).  Besides
+    Brownian increments it gives :class:`~nhsde.PlatenWeak2`'s Gaussian ones: ``ΔW`` from the points, the
+    two-point ``V`` pseudo-random from the block key, as the Wiener driver draws it."""
 
-    v: UInt[Array, "d 32"]
-    shift: UInt[Array, " d"]
-    n_base: int = eqx.field(static=True)
-    channels: int = eqx.field(static=True)
+    v: eqx.AbstractVar[UInt[Array, "r d 32"]]
+    shift: eqx.AbstractVar[UInt[Array, "r d"]]
+    channels: eqx.AbstractVar[int]
     continuous: ClassVar[bool] = True
 
     def variance_rate(self):
         return jnp.ones(())
 
-    def _normals(self, block: Array, lanes: Array, q: Array, dtype) -> Array:
-        """``Φ⁻¹(u)`` of bridge node ``q`` of every channel for paths ``block·BLOCK + lanes``: ``(len(lanes), m)``."""
+    def _normals(self, replicate: Array, block: Array, lanes: Array, q: Array, dtype) -> Array:
+        """``Φ⁻¹(u)`` of bridge node ``q`` of every channel for paths ``block·BLOCK + lanes`` of scrambling
+        ``replicate``: ``(len(lanes), m)``."""
         # point block·BLOCK + lane: the block's high bits once per block, the lane's low bits per lane
         dims = q * self.channels + jnp.arange(self.channels, dtype=jnp.int32)
-        v = self.v[dims]
-        x = _xor_at_bits(v[:, :LANE_BITS], lanes) ^ (_xor_at_bits(v[:, LANE_BITS:], block[None]) ^ self.shift[dims])
+        v = self.v[replicate, dims]
+        x = _xor_at_bits(v[:, :LANE_BITS], lanes) ^ (
+            _xor_at_bits(v[:, LANE_BITS:], block[None]) ^ self.shift[replicate, dims]
+        )
         if jnp.finfo(dtype).bits > 32:
             u = (x.astype(dtype) + 0.5) / 2.0**32
         else:  # the top 24 bits, so that u never rounds to 1
@@ -111,34 +121,66 @@ class ScrambledSobol(AbstractDriver):
         u = jax.lax.optimization_barrier(2.0 * u - 1.0)
         return jax.lax.optimization_barrier(math.sqrt(2.0) * jax.scipy.special.erfinv(u))
 
-    def _bridge(self, block: Array, lanes: Array, g: Array, dt: Array) -> Array:
-        """``W`` at grid index ``g`` (a scalar) of paths ``block·BLOCK + lanes``: ``(len(lanes), m)``."""
+    @abc.abstractmethod
+    def _increment(self, block: Array, k0: Array, dt: Array, substeps) -> Array:
+        """``W((k0 + 1)·substeps) − W(k0·substeps)`` of the block's lanes: ``(BLOCK, m)``."""
+
+    def block_increment(self, key, block, k0, dt, shape, substeps, levy_area):
+        if levy_area not in (dfx.BrownianIncrement, GaussianWeakIncrement):
+            raise ValueError(
+                f"quasi-Monte Carlo draws Brownian increments and PlatenWeak2's Gaussian ones only; this solver asks "
+                f"for {levy_area.__name__}."
+            )
+        if shape != (self.channels,):
+            raise ValueError(f"the driver was built for {self.channels} channels; the system has shape {shape}.")
+        w = self._increment(jnp.asarray(block).astype(jnp.int32), jnp.asarray(k0, jnp.int32), dt, substeps)
+        if levy_area is dfx.BrownianIncrement:
+            return w
+        # V from the block key; the pseudo-random ΔW it comes with is unused, and compiled away
+        return dataclasses.replace(GaussianWeakIncrement.block_draw(key, k0, dt, (BLOCK,) + shape, substeps), W=w)
+
+
+class ScrambledSobol(SobolDriver):
+    """The driver of quasi-Monte Carlo (module): ``R`` scramblings of ``N = blocks·BLOCK`` points each, path ``i``
+    point ``i mod N`` of scrambling ``i // N`` (block ``b`` of scrambling ``b // blocks``); ``n_base`` base steps
+    (a power of two) and ``channels`` fix the dimension."""
+
+    v: UInt[Array, "r d 32"]
+    shift: UInt[Array, "r d"]
+    blocks: Int[Array, ""]
+    n_base: int = eqx.field(static=True)
+    channels: int = eqx.field(static=True)
+
+    def _interval(self, replicate: Array, block: Array, lanes: Array, g: Array, depth: int, dt: Array):
+        """``(lo, W(lo), W(hi))`` of the dyadic interval ``[lo, hi]`` of ``n_base/2^depth`` base steps that holds
+        grid index ``g``, for paths ``block·BLOCK + lanes``: the bridge from its root down through ``depth``
+        ancestors of ``g``, ``depth + 1`` nodes."""
         levels = self.n_base.bit_length() - 1
         lo = jnp.zeros((), jnp.int32)
         w_lo = jnp.zeros((lanes.shape[0], self.channels), dt.dtype)
-        w_hi = math.sqrt(self.n_base) * jnp.sqrt(dt) * self._normals(block, lanes, jnp.zeros((), jnp.int32), dt.dtype)
-        for level in range(1, levels + 1):  # the ancestors of g, coarse to fine
+        w_hi = math.sqrt(self.n_base) * jnp.sqrt(dt) * self._normals(replicate, block, lanes, lo, dt.dtype)
+        for level in range(1, depth + 1):  # the ancestors of g, coarse to fine
             half = self.n_base >> level
             mid = lo + half
             q = (1 << (level - 1)) + (lo >> (levels - level + 1))
-            z = self._normals(block, lanes, q, dt.dtype)
+            z = self._normals(replicate, block, lanes, q, dt.dtype)
             w_mid = 0.5 * (w_lo + w_hi) + jnp.sqrt(0.5 * half * dt) * z
             left = g < mid
             w_lo, w_hi = jnp.where(left, w_lo, w_mid), jnp.where(left, w_mid, w_hi)
             lo = jnp.where(left, lo, mid)
-        return jnp.where(g == lo, w_lo, w_hi)
+        return lo, w_lo, w_hi
 
-    def block_increment(self, key, block, k0, dt, shape, substeps, levy_area):
-        del key  # the scrambling is the randomness; the lanes are Sobol' points
-        if levy_area is not dfx.BrownianIncrement:
+    def _increment(self, block, k0, dt, substeps):
+        if not isinstance(substeps, int) or substeps & (substeps - 1) or substeps > self.n_base:
             raise ValueError(
-                f"quasi-Monte Carlo draws Brownian increments only; this solver asks for {levy_area.__name__}."
+                f"substeps={substeps!r}; the bridge's steps are its dyadic intervals: a power of two up to "
+                f"{self.n_base}, as a number."
             )
-        if shape != (self.channels,):
-            raise ValueError(f"the driver was built for {self.channels} channels; the system has shape {shape}.")
-        block, lanes = jnp.asarray(block).astype(jnp.uint32), jnp.arange(BLOCK, dtype=jnp.uint32)
-        k0 = jnp.asarray(k0, jnp.int32)
-        return self._bridge(block, lanes, (k0 + 1) * substeps, dt) - self._bridge(block, lanes, k0 * substeps, dt)
+        replicate, points = block // self.blocks, (block % self.blocks).astype(jnp.uint32)
+        depth = (self.n_base // substeps).bit_length() - 1
+        # step k0 is the dyadic interval [k0·s, (k0 + 1)·s]: the walk down to it gives both of its ends
+        _, w_lo, w_hi = self._interval(replicate, points, jnp.arange(BLOCK, dtype=jnp.uint32), k0 * substeps, depth, dt)
+        return w_hi - w_lo
 
 
 @functools.partial(jax.jit, static_argnums=1)
@@ -179,11 +221,32 @@ class QuasiMonteCarloEstimate(AbstractEstimate):
 
 
 def allowed_solvers() -> list[str]:
-    return [
+    """The solvers quasi-Monte Carlo drives: the aliases that need Brownian increments only, and Platen's weak
+    order-2 scheme with Gaussian increments."""
+    brownian = [
         name
         for name, make in SOLVERS.items()
         if issubclass(dfx.BrownianIncrement, getattr(make(), "minimal_levy_area", dfx.AbstractBrownianIncrement))
     ]
+    return brownian + ["nhsde.PlatenWeak2(increments='gaussian')"]
+
+
+def check_solver(solver, system: StochasticSystem):
+    """``solver``'s needs if the Sobol' drivers give its increments (:func:`allowed_solvers`); else raises."""
+    needs = solver_needs(solver, system)
+    if needs.levy_area not in (dfx.BrownianIncrement, GaussianWeakIncrement):
+        raise ValueError(
+            f"solver={solver!r} needs {needs.levy_area.__name__}, which quasi-Monte Carlo does not draw; "
+            f"allowed: {', '.join(allowed_solvers())}, or a diffrax solver that needs Brownian increments only."
+        )
+    return needs
+
+
+def stacked_scramblings(key, replicates: int, d: int) -> tuple[Array, Array]:
+    """Scramblings ``r = 0 … replicates − 1`` (:func:`scrambled_sobol` of ``fold_in(key, r)``), stacked: ``v``
+    ``(R, d, 32)`` and ``shift`` ``(R, d)``, stacked on the host (no program per count)."""
+    scrambled = [scrambled_sobol(fold_key(key, r), d) for r in range(replicates)]
+    return tuple(jax.device_put(np.stack([np.asarray(s[i]) for s in scrambled])) for i in (0, 1))
 
 
 def combine_replicates(means: Values, seconds: Values):
@@ -221,10 +284,11 @@ def quasi_monte_carlo(
 ) -> QuasiMonteCarloEstimate:
     """Means and covariances of the saved quantities by randomised quasi-Monte Carlo (module).
 
-    Each of ``replicates`` runs is :func:`~nhsde.simulate` of ``n_paths`` paths with the system's Wiener
-    driver replaced by an independently scrambled Sobol' point set through a Brownian bridge (a split of
-    ``key``); the same key gives bitwise the same result, whatever the batching.  Every path has the law of
-    a Monte-Carlo path, so the estimate is unbiased for the scheme's expectation at ``dt``:
+    One :func:`~nhsde.simulate` of ``replicates × n_paths`` paths, the system's Wiener driver replaced by
+    ``replicates`` independently scrambled Sobol' point sets (keys ``fold_in(key, r)``) through a Brownian
+    bridge, ``n_paths`` paths each; the per-replicate moments are reduced from the kept paths (on the host in
+    float64 for concrete values).  The same key gives bitwise the same result, whatever the batching.  Every
+    path has the law of a Monte-Carlo path, so the estimate is unbiased for the scheme's expectation at ``dt``:
     ``mean = avg_r m_r``, ``cov = avg_r S_r − mean meanᵀ − Ĉov(mean)`` with ``S_r`` replicate ``r``'s second
     moment and ``Ĉov(mean)`` the replicate spread over ``R``.  Paths within a replicate are dependent, so
     per-path standard errors would be wrong: the errors are the standard deviations over the independent
@@ -239,9 +303,10 @@ def quasi_monte_carlo(
 
     Arguments as :func:`~nhsde.simulate`; ``n_paths`` per replicate, a power of two ≥ 64 (the Sobol' points
     ``0 … n_paths − 1`` form a net); ``(t1 − t0)/dt`` a power of two with ``(t1 − t0)/dt × channels ≤
-    21201``; ``solver`` one that needs Brownian increments only (not Lévy area); ``wrt``: names of scalar
-    parameters: ``derivatives`` of the moments in them (forward mode per replicate), with errors from the
-    replicate spread.
+    21201``; ``solver`` one of :func:`allowed_solvers`: one that needs Brownian increments only (not Lévy
+    area), or ``nhsde.PlatenWeak2(increments='gaussian')`` (weak order 2), whose ``ΔW`` come from the points and
+    two-point ``V`` pseudo-random from ``fold_in(key, replicates)``; ``wrt``: names of scalar parameters:
+    ``derivatives`` of the moments in them (forward mode), with errors from the replicate spread.
     """
     watch = Stopwatch()
     if not isinstance(system, StochasticSystem):
@@ -251,12 +316,7 @@ def quasi_monte_carlo(
         raise ValueError(
             f"system.noise={type(system.noise).__name__} has jumps; quasi-Monte Carlo needs a Wiener driver."
         )
-    needs = solver_needs(solver, system)
-    if needs.levy_area is not dfx.BrownianIncrement:
-        raise ValueError(
-            f"solver={solver!r} needs {needs.levy_area.__name__}, which quasi-Monte Carlo does not draw; "
-            f"allowed: {', '.join(allowed_solvers())}, or a diffrax solver that needs Brownian increments only."
-        )
+    check_solver(solver, system)
     n_paths = check_number("n_paths", n_paths, integer=True)
     if n_paths < BLOCK or n_paths & (n_paths - 1) or n_paths > MAX_PATH_INDEX:
         raise ValueError(
@@ -266,6 +326,11 @@ def quasi_monte_carlo(
     replicates = check_number("replicates", replicates, integer=True)
     if replicates < 2:
         raise ValueError(f"replicates={replicates}; the standard errors need ≥ 2 independent scramblings.")
+    if replicates * n_paths > MAX_PATH_INDEX + 1:
+        raise ValueError(
+            f"replicates={replicates}, n_paths={n_paths}: {replicates * n_paths} paths in one run, beyond the "
+            f"{MAX_PATH_INDEX + 1} it indexes; take fewer."
+        )
     if isinstance(dt, AbstractSteps):
         raise TypeError(
             f"dt={dt!r}; quasi-Monte Carlo needs a fixed step given as a number (adaptive steps refine each path "
@@ -291,30 +356,34 @@ def quasi_monte_carlo(
         raise TypeError(f"save={save!r}; expected nhsde.Save(...).")
     names = system.layout.names if save.names is None else save.names
 
-    def replicate(k):
-        v, shift = scrambled_sobol(k, n_base * m)
-        driven = eqx.tree_at(lambda s: s.noise, system, ScrambledSobol(v, shift, n_base, m))
+    v, shift = stacked_scramblings(key, replicates, n_base * m)  # independent scramblings
+    blocks = jax.device_put(np.asarray(n_paths // BLOCK, np.int32))
+    driven = eqx.tree_at(
+        lambda s: s.noise, system, ScrambledSobol(v=v, shift=shift, blocks=blocks, n_base=n_base, channels=m)
+    )
+    kept = dataclasses.replace(save, paths=True)
+    paths_key = fold_key(key, replicates)  # the pseudo-random parts (PlatenWeak2's V): no scrambling's key
 
-        def moments(s):
-            ens = simulate(s, y0, k, n_paths=n_paths, t0=t0, t1=t1, dt=dt, solver=solver, save=save, batching=batching)
-            xp = array_module(ens.mean, ens.cov)  # concrete: on the host, no program per shape
-            mean, cov = (np.asarray(a, np.float64) for a in (ens.mean, ens.cov)) if xp is np else (ens.mean, ens.cov)
-            return ens.ts, mean, cov * ((n_paths - 1) / n_paths) + xp.einsum("ni,nj->nij", mean, mean)
+    def moments(s):
+        """Per-replicate means ``(R, n, k)`` and second moments ``(R, n, k, k)`` of one run of all the paths."""
+        n_all = replicates * n_paths
+        ens = simulate(
+            s, y0, paths_key, n_paths=n_all, t0=t0, t1=t1, dt=dt, solver=solver, save=kept, batching=batching
+        )
+        assert ens.paths is not None
+        xp = array_module(ens.paths)  # concrete: on the host in float64, no program per shape
+        z = (np.asarray(ens.paths, np.float64) if xp is np else ens.paths).reshape(replicates, n_paths, -1, len(names))
+        mean = xp.mean(z, axis=1)
+        f = z - mean[:, None]
+        return ens.ts, mean, xp.einsum("rpni,rpnj->rnij", f, f) / n_paths + xp.einsum("rni,rnj->rnij", mean, mean)
 
-        return with_tangents(moments, driven, wrt)
-
-    runs = [replicate(fold_key(key, r)) for r in range(replicates)]  # independent scramblings
-    tangents = [tangent for _, tangent in runs if tangent is not None]  # with wrt
-    ts = runs[0][0][0]
-    xp = array_module([value for value, _ in runs])
-    means = xp.stack([value[1] for value, _ in runs])
-    seconds = xp.stack([value[2] for value, _ in runs])
+    (ts, means, seconds), tangents = with_tangents(moments, driven, wrt)
+    xp = array_module(means, seconds)
     mean, cov = combine_replicates(means, seconds)
     per_cov = seconds - xp.einsum("rni,rnj->rnij", means, means)
     derivatives = None
-    if tangents:
-        d_means = jnp.stack([tangent[1] for tangent in tangents], axis=1)  # (p, R, n, k)
-        d_seconds = jnp.stack([tangent[2] for tangent in tangents], axis=1)
+    if tangents is not None:
+        d_means, d_seconds = tangents[1], tangents[2]  # (p, R, n, k), (p, R, n, k, k)
         d_mean, d_cov = jax.vmap(lambda dm, ds: jax.jvp(combine_replicates, (means, seconds), (dm, ds))[1])(
             d_means, d_seconds
         )
