@@ -19,7 +19,15 @@ import nhsde
 from nhsde.noise import CompoundPoisson, NormalJumps
 from nhsde.runs import ConfigError, RunConfig, main
 from nhsde.scenes import BallOnVibratingPlane, ball_covariances
-from nhsde.statistics import QuasiMonteCarloEstimate, multilevel_monte_carlo, to_accuracy
+from nhsde.statistics import (
+    Multilevel,
+    PlainMonteCarlo,
+    QuasiMonteCarlo,
+    QuasiMonteCarloEstimate,
+    Richardson,
+    multilevel_monte_carlo,
+    to_accuracy,
+)
 
 DELTA = 1 / 1.4
 BALL = BallOnVibratingPlane(eps=1.0, nu=1.0)
@@ -28,14 +36,10 @@ K_XX = float(ball_covariances(jnp.float64(1.0), 1.0, 1.0, DELTA)[0])
 # Euler on plain paths only, so that the few compiled programs are shared by every test here (the CLI's pilot
 # included); the control variate is exact on the linear ball and would make the accuracy test trivial.  Quasi-Monte
 # Carlo has tests of its own (its pilot compiles programs of its own; off here so that these stay fast).
-FAST = dict(
-    t1=1.0,
-    statistic=("cov", "x", "x"),
-    solver="euler",
-    antithetic=False,
-    control_variate=False,
-    quasi_monte_carlo=False,
-)
+EULER = (PlainMonteCarlo("euler"), Richardson("euler"), Multilevel("euler"))
+FAST = dict(t1=1.0, statistic=("cov", "x", "x"), estimators=EULER)
+QMC_ON = FAST | dict(estimators=EULER + (QuasiMonteCarlo(),))
+QMC_ALONE = dict(estimators=(QuasiMonteCarlo(),))
 
 
 def test_reaches_the_requested_rmse_on_the_ball():
@@ -78,21 +82,24 @@ def test_derivatives_with_standard_errors_on_the_ball():
 
 def test_quasi_monte_carlo_is_priced_and_reaches_the_target_on_the_ball():
     """The report lists quasi-Monte Carlo (Euler) with a finite predicted work, its cost ratio κ measured, its pilot
-    counted; run (forced: the alternative's own run), K_xx(1) is within 3 target RMSEs of the closed form (Chebyshev:
-    ≥ 89 % if its MSE ≤ ε²; the prediction assumes the Monte-Carlo rate, an upper bound), its standard error below
-    the target, its work the path-steps it ran, and its derivatives in (ε, ν) within 4 SE (99.99 %) of the Euler
-    chain's at its step."""
+    counted.  Forced (quasi-Monte Carlo alone, which makes the same plan from the same key), K_xx(1) is within 3
+    target RMSEs of the closed form (Chebyshev: ≥ 89 % if its MSE ≤ ε²; the prediction assumes the Monte-Carlo
+    rate, an upper bound), its standard error below the target, its work the path-steps it ran, and its derivatives
+    in (ε, ν) within 4 SE (99.99 %) of the Euler chain's at its step."""
     eps = 0.08 * K_XX
     wrt = ("eps", "nu")
-    qmc_on = dict(quasi_monte_carlo=True, explore=True)
-    r = to_accuracy(BALL.build(), Y0, jax.random.key(20), rmse=eps, wrt=wrt, **(FAST | qmc_on))
+    r = to_accuracy(BALL.build(), Y0, jax.random.key(20), rmse=eps, wrt=wrt, explore=True, **QMC_ON)
     qmc = next(a for a in r.alternatives if a.name == "quasi-Monte Carlo, euler")
-    assert math.isfinite(qmc.cost) and qmc.cost > 0 and qmc.run is not None, r.report()
+    assert qmc.applies and qmc.cost > 0 and isinstance(qmc.estimator, QuasiMonteCarlo), r.report()
     assert "κ = " in qmc.note and qmc.pilot_work > 0 and r.pilot_cost.path_steps >= r.pilot[0].work + qmc.pilot_work
     assert qmc.n_paths[0] % 16 == 0 and qmc.n_paths[0] // 16 >= 64 and (qmc.n_paths[0] // 16).bit_count() == 1
     assert (1.0 / qmc.dt).is_integer() and int(1.0 / qmc.dt).bit_count() == 1
     assert "quasi-Monte Carlo, euler" in r.report()
-    result, bias = qmc.run()
+    # forced: the same key and pilots with quasi-Monte Carlo alone make the same plan, and run it
+    only = to_accuracy(BALL.build(), Y0, jax.random.key(20), rmse=eps, wrt=wrt, **(QMC_ON | QMC_ALONE))
+    assert only.choice == qmc.name and only.bias == qmc.bias
+    assert only.predicted.path_steps == pytest.approx(qmc.cost / qmc.kappa, rel=1e-12)
+    result, bias = only.estimate, only.bias
     value, se = result.value(r.statistic)
     work = result.cost.path_steps
     assert isinstance(result, QuasiMonteCarloEstimate) and result.replicates == 16
@@ -112,10 +119,9 @@ def test_quasi_monte_carlo_does_not_apply_off_a_power_of_two():
     """``(t1 − t0)/dt = 3`` steps: quasi-Monte Carlo is listed as not applying, with the reason, and another
     alternative reaches the target."""
     eps = 0.2 * K_XX
-    qmc_on = dict(quasi_monte_carlo=True, explore=True)
-    r = to_accuracy(BALL.build(), Y0, jax.random.key(2), rmse=eps, dt=1 / 3, **(FAST | qmc_on))
+    r = to_accuracy(BALL.build(), Y0, jax.random.key(2), rmse=eps, dt=1 / 3, explore=True, **QMC_ON)
     qmc = next(a for a in r.alternatives if a.name == "quasi-Monte Carlo, euler")
-    assert qmc.cost == math.inf and qmc.run is None and qmc.note.startswith("does not apply: "), qmc
+    assert qmc.cost == math.inf and not qmc.applies and qmc.note.startswith("does not apply: "), qmc
     assert "not a power of two" in qmc.note and "does not apply" in r.report()
     assert r.choice != qmc.name and abs(r.value()[0] - K_XX) <= 3 * eps
 
@@ -164,6 +170,18 @@ def test_bad_input_raises_naming_the_argument():
         to_accuracy(jumps, Y0, key, rmse=0.1, solver=nhsde.PlatenWeak2(increments="gaussian"), **base)
     with pytest.raises(ValueError, match="antithetic=True"):
         to_accuracy(jumps, Y0, key, rmse=0.1, antithetic=True, **base)
+    # the estimators: given once, each checked against the system before any solve
+    with pytest.raises(TypeError, match="solver='euler' and estimators="):
+        to_accuracy(system, Y0, key, rmse=0.1, solver="euler", estimators=EULER, **base)
+    for estimators in ((), ("multilevel",), [PlainMonteCarlo, Richardson]):
+        with pytest.raises(TypeError, match="estimators="):
+            to_accuracy(system, Y0, key, rmse=0.1, estimators=estimators, **base)
+    with pytest.raises(ValueError, match="solver='weak2'"):
+        to_accuracy(system, Y0, key, rmse=0.1, estimators=(Multilevel("weak2"),), **base)
+    with pytest.raises(ValueError, match="weak_order="):
+        to_accuracy(system, Y0, key, rmse=0.1, estimators=(Richardson("euler", weak_order=0),), **base)
+    with pytest.raises(ValueError, match=r"PlainMonteCarlo\(solver='euler', weak_order=None, antithetic=True\)"):
+        to_accuracy(jumps, Y0, key, rmse=0.1, estimators=(PlainMonteCarlo("euler", antithetic=True),), **base)
 
 
 def test_run_file_accuracy_table_is_checked():
@@ -244,7 +262,12 @@ def test_a_loose_target_is_answered_after_one_compiled_program():
     r = to_accuracy(BALL.build(), Y0, jax.random.key(4), t1=1.0, statistic=("cov", "x", "x"), rmse=eps)
     assert [p.solver for p in r.pilot] == ["weak2-gaussian"], r.report()
     skipped = {a.name for a in r.alternatives if a.note.startswith("not priced: ")}
-    assert skipped == {"any, euler", "control variate, euler"}, r.report()
+    euler = {
+        f"{method}, euler{anti}"
+        for method in ("plain MC", "extrapolation", "multilevel")
+        for anti in ("", ", antithetic")
+    }
+    assert skipped == euler | {"control variate, euler", "quasi-Monte Carlo, euler"}, r.report()
     assert "explore=True prices it" in r.report() and abs(r.value()[0] - K_XX) <= 3 * eps
     again = to_accuracy(BALL.build(), Y0, jax.random.key(4), t1=1.0, statistic=("cov", "x", "x"), rmse=eps)
     assert again.choice == r.choice and again.value() == r.value()
@@ -282,8 +305,11 @@ def test_reaches_the_target_from_a_coarsest_step_above_one():
     (99 % if each run's MSE ≤ ε²).  ε = 0.1 keeps Euler stable at h₀ (ε h₀ = 0.25); the closed form is S0 (3.1)."""
     scene = BallOnVibratingPlane(eps=0.1, nu=1.0)
     exact = float(ball_covariances(jnp.float64(10.0), 0.1, 1.0, DELTA)[0])
-    args = dict(t1=10.0, statistic=("cov", "x", "x"), relative_rmse=0.05, control_variate=False)
-    runs = [to_accuracy(scene.build(), Y0, jax.random.key(100 + r), quasi_monte_carlo=False, **args) for r in range(20)]
+    solvers = ("euler", nhsde.PlatenWeak2(increments="gaussian"))
+    kinds = (PlainMonteCarlo, Richardson, Multilevel)
+    plans = tuple(kind(s, antithetic=a) for s in solvers for a in (False, True) for kind in kinds)
+    args = dict(t1=10.0, statistic=("cov", "x", "x"), relative_rmse=0.05, estimators=plans)
+    runs = [to_accuracy(scene.build(), Y0, jax.random.key(100 + r), **args) for r in range(20)]
     errors = np.array([(r.value()[0] - exact) / r.rmse for r in runs])
     assert all(r.pilot[0].dts[0] == 2.5 for r in runs)
     assert np.sqrt(np.mean(errors**2)) <= math.sqrt(scipy.stats.chi2.ppf(0.99, 20) / 20), (errors, runs[0].report())

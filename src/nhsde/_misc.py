@@ -55,6 +55,8 @@ def check_number(name: str, value, *, positive: bool = False, integer: bool = Fa
     if scalar_array and jnp.issubdtype(jnp.asarray(value).dtype, jnp.bool_):
         raise TypeError(f"{name}={value!r}; expected a number.")
     if integer and isinstance(value, (int, np.integer)):
+        if positive and value <= 0:
+            raise ValueError(f"{name}={value}; must be > 0.")
         return int(value)
     v = float(value)
     if not math.isfinite(v):

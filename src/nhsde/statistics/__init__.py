@@ -12,7 +12,9 @@
   :func:`antithetic` paths, :func:`control_variate` (the linearised system
   driven by the same increments), :func:`quasi_monte_carlo` (scrambled Sobol'
   points through a Brownian bridge), :func:`multilevel_quasi_monte_carlo`; :func:`to_accuracy` chooses among
-  them from a pilot run for a requested RMSE.  Each returns an :class:`AbstractEstimate` (moments, standard
+  them from a pilot run for a requested RMSE, among estimator objects (:class:`PlainMonteCarlo`,
+  :class:`Richardson`, :class:`Multilevel`, :class:`ControlVariate`, :class:`QuasiMonteCarlo`; ``estimators=``) that
+  each predict their work from a pilot and run their plan.  Each returns an :class:`AbstractEstimate` (moments, standard
   errors, ``derivatives``, measured ``cost``); a statistic is named once, :class:`Mean` or :class:`Covariance`.
 - Derivatives of simulated moments with their standard errors: :func:`moment_sensitivities`.
 - The Fokker–Planck equation on a grid (1 and 2 components):
@@ -47,6 +49,14 @@ from ._estimate import (
     Mean as Mean,
     MonteCarloEstimate as MonteCarloEstimate,
 )
+from ._estimators import (
+    AbstractEstimator as AbstractEstimator,
+    ControlVariate as ControlVariate,
+    Multilevel as Multilevel,
+    PlainMonteCarlo as PlainMonteCarlo,
+    QuasiMonteCarlo as QuasiMonteCarlo,
+    Richardson as Richardson,
+)
 from ._extrapolation import Extrapolation as Extrapolation, extrapolate as extrapolate
 from ._fokker_planck import (
     GridDensity as GridDensity,
@@ -60,6 +70,7 @@ from ._normal_approximation import (
     normal_approximation as normal_approximation,
 )
 from ._qmc import QuasiMonteCarloEstimate as QuasiMonteCarloEstimate, quasi_monte_carlo as quasi_monte_carlo
+from ._report import AccuracyAlternative as AccuracyAlternative
 from ._sensitivities import Sensitivities as Sensitivities, moment_sensitivities as moment_sensitivities
 from ._stationary import StationaryDensity as StationaryDensity, stationary_density as stationary_density
 from ._stationary_drift import StationaryDrift as StationaryDrift, stationary_drift as stationary_drift

@@ -43,29 +43,33 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Sequence
-from typing import Any
 
 import diffrax as dfx
 
 from .._brownian import BLOCK
 from .._ensemble import Save, SimulationError
-from .._misc import check_key, check_number, check_span, check_steps, fold_key, is_concrete, split_key
+from .._misc import check_key, check_number, check_span, check_steps, is_concrete, split_key
 from .._options import AbstractSteps, Batching, FixedSteps
 from .._simulate import stable_step
 from .._system import StochasticSystem
-from ._alternatives import control_variate_alternative, kept_samples, quasi_monte_carlo_alternative, solver_alternatives
-from ._cost import (
-    check_memory,
-    memory_limit,
-    path_bytes,
-    peak_bytes,
-)
+from .._weak import PlatenWeak2
+from ._cost import check_memory, memory_limit, path_bytes, peak_bytes
 from ._estimate import AbstractStatistic, Cost, Stopwatch, as_statistic
-from ._pilot import candidate_solvers, run_pilot
-from ._report import AccuracyAlternative, AccuracyResult, PilotSummary
+from ._estimators import (
+    AbstractEstimator,
+    ControlVariate,
+    Multilevel,
+    PlainMonteCarlo,
+    Pricing,
+    QuasiMonteCarlo,
+    Richardson,
+)
+from ._pilot import Candidate, candidate
+from ._report import AccuracyAlternative, AccuracyResult
 from ._sensitivities import check_wrt
+from ._variance_reduction import check_reflectable
 
-__all__ = ["AccuracyAlternative", "AccuracyResult", "to_accuracy"]
+__all__ = ["AccuracyAlternative", "AccuracyResult", "default_estimators", "to_accuracy"]
 
 EXPLORE_ABOVE = 64
 """A further pilot runs (by default) only when the best run so far is predicted to take more than this many times
@@ -73,6 +77,80 @@ the first pilot's path-steps: below, compiling and running another pilot costs m
 
 MAX_PILOT_HALVINGS = 10
 """The default coarsest step is halved while the pilot's paths fail, down to ``(t1 − t0)/2^10``."""
+
+
+# --- the estimators ---------------------------------------------------------------------------------------------
+
+
+def default_estimators(
+    system: StochasticSystem, solver=None, weak_order: int | None = None, antithetic: bool | None = None
+) -> tuple[list[AbstractEstimator], list[str]]:
+    """The default set (:func:`to_accuracy`) narrowed by ``solver``, ``weak_order`` and ``antithetic``, and notes on
+    the default solvers the system's driver does not allow."""
+    notes = []
+    if solver is not None:
+        cand = candidate(solver, weak_order)
+        cand.check(system)
+        solvers = [(solver, weak_order)]
+    else:
+        solvers = []
+        for s in ("euler", PlatenWeak2(increments="gaussian")):
+            try:
+                candidate(s).check(system)
+            except ValueError as e:
+                notes.append(f"{candidate(s).label}: {e}")
+                continue
+            solvers.append((s, None))
+    use_anti = system.noise.continuous and antithetic is not False
+    variants = [a for a in (False, True) if (a and use_anti) or (not a and antithetic is not True)]
+    estimators: list[AbstractEstimator] = [
+        kind(s, w, anti) for s, w in solvers for anti in variants for kind in (PlainMonteCarlo, Richardson, Multilevel)
+    ]
+    if any(_is_euler(s) for s, _ in solvers):
+        estimators += [ControlVariate(), QuasiMonteCarlo()]
+    return estimators, notes
+
+
+def _is_euler(solver) -> bool:
+    return (isinstance(solver, str) and solver == "euler") or type(solver) is dfx.Euler
+
+
+def price(
+    estimators: Sequence[AbstractEstimator], pricing: Pricing, first: Candidate, explore: bool
+) -> list[AccuracyAlternative]:
+    """Every estimator's plan, those reading the first pilot first; a further pilot (another solver's, or an
+    estimator's own) only while :func:`to_accuracy`'s exploration rule allows it."""
+    alternatives: list[AccuracyAlternative] = []
+    first_work = pricing.pilots[first.label].work
+    failed: dict[str, str] = {}  # solver label → why its pilot failed
+
+    def on_first(e: AbstractEstimator) -> bool:
+        return e.candidate.label == first.label and not e.own_pilot
+
+    for e in sorted(estimators, key=lambda e: not on_first(e)):  # stable: otherwise in the given order
+        label = e.candidate.label
+        reason = e.applies(pricing)
+        if reason is not None:
+            alternatives.append(e.row(reason))
+            continue
+        if label in failed:
+            alternatives.append(e.row(failed[label]))
+            continue
+        best = min((a.cost for a in alternatives if a.applies), default=math.inf)
+        further = e.own_pilot or label not in pricing.pilots
+        if further and not (explore or best > EXPLORE_ABOVE * first_work):
+            note = (
+                f"not priced: the best run so far is predicted at {best:.2g} path-steps, less than {EXPLORE_ABOVE}× "
+                f"the first pilot's {first_work:.2g} (another pilot compiles a program); explore=True prices it"
+            )
+            alternatives.append(e.row(note))
+            continue
+        try:
+            alternatives.append(e.predict(pricing))
+        except (SimulationError, ValueError) as err:  # this solver's paths blow up at h0 (another's did not)
+            failed[label] = f"does not apply at dt={pricing.h0:g}: its pilot failed: {str(err).splitlines()[0][:160]}"
+            alternatives.append(e.row(failed[label]))
+    return alternatives
 
 
 # --- the entry point --------------------------------------------------------------------------------------------
@@ -98,8 +176,7 @@ def to_accuracy(
     pilot_levels: int = 3,
     max_path_steps: float = 1e11,
     cost: str = "path-steps",
-    control_variate: bool = True,
-    quasi_monte_carlo: bool = True,
+    estimators: Sequence[AbstractEstimator] | None = None,
     explore: bool = False,
     batching: Batching | None = None,
     wrt: Sequence[str] | None = None,
@@ -116,9 +193,14 @@ def to_accuracy(
       system's declared friction, and again while the pilot's paths fail there, down to ``(t1 − t0)/2^10``, their
       work counted; if the chosen run's paths still fail, every alternative is priced again from half that step,
       once); pilots run at ``h₀ … h₀ 2^{1−pilot_levels}``, every alternative at ``h₀`` or finer.
+    - ``estimators``: the estimators to choose among (:class:`PlainMonteCarlo`, :class:`Richardson`,
+      :class:`Multilevel`, each with its solver and plain or antithetic paths; :class:`ControlVariate`,
+      :class:`QuasiMonteCarlo`).  Default: each of the first three for Euler–Maruyama and
+      ``PlatenWeak2(increments='gaussian')`` (those the system's driver allows), plain and antithetic (Wiener
+      drivers), then the control variate and quasi-Monte Carlo; ``solver``, ``weak_order`` and ``antithetic``
+      narrow that default set:
     - ``solver``: consider only this one (``PlatenWeak2`` needs ``increments='gaussian'``),
-      of weak order ``weak_order`` (default 2 for ``PlatenWeak2``, else 1); default: Euler–Maruyama
-      and ``PlatenWeak2(increments='gaussian')``, those the system's driver allows.
+      of weak order ``weak_order`` (default 2 for ``PlatenWeak2``, else 1).
     - ``antithetic``: ``None`` considers both plain and antithetic paths (Wiener drivers),
       ``True``/``False`` only those.
     - ``pilot_paths``, ``pilot_levels`` (≥ 2; 3 to estimate the extrapolation's bias).
@@ -127,15 +209,13 @@ def to_accuracy(
       size).
     - ``cost``: ``'path-steps'``, or ``'seconds'`` (path-steps times each solver's
       measured seconds per path-step from a second, compiled, pilot run).
-    - ``control_variate``: consider a control variate where one is available.
-    - ``quasi_monte_carlo``: consider randomised quasi-Monte Carlo (Euler) where it applies: ``(t1 − t0)/dt``
-      a power of two, a continuous driver, ``solver`` Euler or the default set.  Its pilot (8 scramblings of
-      ``pilot_paths/8`` paths rounded down to a power of two, run twice to time it) predicts its work from its
-      variance at the Monte-Carlo rate ``N^{−1/2}``, an upper bound where it converges faster; its work is
-      counted in Euler path-steps (times the measured cost ratio ``κ``, in the report's note).
-    - ``explore``: price every alternative.  By default (``False``) the first solver's pilot (weak order 2
-      where the driver allows it) prices its plain, extrapolated and multilevel runs, and a further pilot (another
-      solver, the control variate, quasi-Monte Carlo) runs only when the best run so far is predicted to take more
+    - Quasi-Monte Carlo (Euler) applies where ``(t1 − t0)/dt`` is a power of two and the driver is continuous.  Its
+      pilot (8 scramblings of ``pilot_paths/8`` paths rounded down to a power of two, run twice to time it) predicts
+      its work from its variance at the Monte-Carlo rate ``N^{−1/2}``, an upper bound where it converges faster; its
+      work is counted in Euler path-steps (times the measured cost ratio ``κ``, in the report's note).
+    - ``explore``: price every alternative.  By default (``False``) the first solver's pilot (the highest weak
+      order among the estimators' solvers) prices the estimators of that solver, and a further pilot (another
+      solver's, the control variate's, quasi-Monte Carlo's) runs only when the best run so far is predicted to take more
       than :data:`EXPLORE_ABOVE` times the first pilot's path-steps (the rule counts work, not seconds, so a key
       gives the same choice on any machine and with any cache): a loose target is answered after one compiled
       program, a tight one after all.  Alternatives not priced are listed with the reason; a further solver whose
@@ -163,7 +243,26 @@ def to_accuracy(
             )
         dt = steps.dt
     t0, t1 = check_span(t0, t1)
-    candidates, skipped = candidate_solvers(system, solver, weak_order)
+    if antithetic is not None and not isinstance(antithetic, bool):
+        raise TypeError(f"antithetic={antithetic!r}; expected None, True or False.")
+    if antithetic:
+        check_reflectable(system.noise, "antithetic=True")
+    if estimators is None:
+        estimators, skipped = default_estimators(system, solver, weak_order, antithetic)
+    else:
+        given = dict(solver=solver, weak_order=weak_order, antithetic=antithetic)
+        if any(v is not None for v in given.values()):
+            named = ", ".join(f"{k}={v!r}" for k, v in given.items() if v is not None)
+            raise TypeError(f"{named} and estimators=: give the solvers and antithetic paths in the estimators.")
+        estimators, skipped = tuple(estimators), []
+        if not estimators or not all(isinstance(e, AbstractEstimator) for e in estimators):
+            raise TypeError(
+                f"estimators={estimators!r}; expected a non-empty sequence of nhsde.statistics estimators "
+                "(PlainMonteCarlo, Richardson, Multilevel, ControlVariate, QuasiMonteCarlo)."
+            )
+        for e in estimators:
+            e.check(system)
+    candidates = list({e.candidate.label: e.candidate for e in estimators}.values())
     default_step = dt is None
     if default_step:  # the coarsest step: (t1 − t0)/4, halved until every candidate damps the declared friction
         dt = (t1 - t0) / 4
@@ -180,13 +279,6 @@ def to_accuracy(
     if steps0 % (n_save - 1):
         raise ValueError(f"save.n={n_save}: n − 1 must divide the {steps0} steps of the coarsest step dt={h0}.")
     save = Save(names=names, n=n_save, paths=True)
-    if antithetic is not None and not isinstance(antithetic, bool):
-        raise TypeError(f"antithetic={antithetic!r}; expected None, True or False.")
-    if antithetic and not system.noise.continuous:
-        raise ValueError(
-            f"antithetic=True: the driver {type(system.noise).__name__} has jumps, whose law is not symmetric under "
-            "W → −W; antithetic paths need a Wiener driver."
-        )
     pilot_paths = check_number("pilot_paths", pilot_paths, integer=True)
     if pilot_paths < BLOCK or pilot_paths % BLOCK:
         raise ValueError(f"pilot_paths={pilot_paths}; must be a positive multiple of {BLOCK}.")
@@ -201,41 +293,41 @@ def to_accuracy(
         raise TypeError("to_accuracy chooses path counts from a pilot: it needs concrete parameters, not traced ones.")
     key = check_key(key)
     pilot_key, run_key = split_key(key)
-    use_anti = system.noise.continuous and antithetic is not False
-    timed = cost == "seconds"
-
-    # weak order 2 first: the solver most alternatives choose; the pilot keys stay each solver's own
-    order = sorted(range(len(candidates)), key=lambda c: -candidates[c].order)
-
-    def pilot_of(c: int, h0: float) -> PilotSummary:
-        return run_pilot(
-            system,
-            y0,
-            fold_key(pilot_key, c),
-            candidates[c],
-            t0=t0,
-            t1=t1,
-            h0=h0,
-            levels=pilot_levels,
-            n_paths=pilot_paths,
-            save=save,
-            anti=use_anti,
-            batching=batching,
-            statistic=statistic,
-            timed=timed,
-        )
-
+    pricing = Pricing(
+        system=system,
+        y0=y0,
+        pilot_key=pilot_key,
+        run_key=run_key,
+        rmse=math.nan,
+        h0=h0,
+        steps0=steps0,
+        t0=t0,
+        t1=t1,
+        save=save,
+        statistic=statistic,
+        pilot_paths=pilot_paths,
+        pilot_levels=pilot_levels,
+        batching=batching,
+        wrt=wrt,
+        timed=cost == "seconds",
+        pilot_keys={c.label: i for i, c in enumerate(candidates)},
+        antithetic_pilots=frozenset(e.candidate.label for e in estimators if e.antithetic),
+    )
+    # the highest weak order first: the solver most alternatives choose
+    first_solver = max(candidates, key=lambda c: c.order)
     failed_work = 0.0  # the default coarsest step is halved while the pilot's paths fail there (a nonlinear blow-up)
     while True:
         try:
-            first = pilot_of(order[0], h0)
+            first = pricing.pilot(first_solver)
             break
         except (SimulationError, ValueError) as e:
             blown_up = isinstance(e, SimulationError) or "non-finite values" in str(e)
-            if not (default_step and blown_up and steps0 < 2**MAX_PILOT_HALVINGS):
+            if not (default_step and blown_up and pricing.steps0 < 2**MAX_PILOT_HALVINGS):
                 raise
-            failed_work += pilot_paths * (2 if use_anti else 1) * steps0 * (2**pilot_levels - 1)
-            h0, steps0 = h0 / 2, steps0 * 2
+            anti = first_solver.label in pricing.antithetic_pilots
+            failed_work += pilot_paths * (2 if anti else 1) * pricing.steps0 * (2**pilot_levels - 1)
+            pricing.h0, pricing.steps0 = pricing.h0 / 2, pricing.steps0 * 2
+    h0 = pricing.h0
     if rmse is None:
         value, se = first.values[-1], first.standard_errors[-1]
         if not abs(value) > 2 * se:
@@ -245,70 +337,28 @@ def to_accuracy(
             )
         assert relative_rmse is not None
         rmse = relative_rmse * abs(value)
-
-    common: dict[str, Any] = dict(
-        run=dict(t0=t0, t1=t1, save=save, batching=batching, wrt=wrt or None),
-        t0=t0,
-        t1=t1,
-        save=save,
-        statistic=statistic,
-        pilot_paths=pilot_paths,
-        pilot_levels=pilot_levels,
-    )
-    priced = {order[0]: first}
-    alternatives: list[AccuracyAlternative] = solver_alternatives(
-        system, y0, run_key, candidates[order[0]], first, rmse, h0, steps0, use_anti, antithetic, common
-    )
-
-    def worth_pricing(name: str, method: str, label: str) -> bool:
-        """A further pilot (compiling a program and running) pays only for a run far longer than the first pilot."""
-        best = min((a.cost for a in alternatives if a.run is not None), default=math.inf)
-        if explore or best > EXPLORE_ABOVE * first.work:
-            return True
-        note = (
-            f"not priced: the best run so far is predicted at {best:.2g} path-steps, less than {EXPLORE_ABOVE}× "
-            f"the first pilot's {first.work:.2g} (another pilot compiles a program); explore=True prices it"
-        )
-        alternatives.append(AccuracyAlternative(name, method, label, False, math.inf, note=note))
-        return False
-
-    for c in order[1:]:
-        if worth_pricing(f"any, {candidates[c].label}", "-", candidates[c].label):
-            try:
-                priced[c] = pilot_of(c, h0)
-            except (SimulationError, ValueError) as e:  # this solver's paths blow up at h0 (another's did not)
-                note = f"does not apply at dt={h0:g}: its pilot failed: {str(e).splitlines()[0][:160]}"
-                alternatives.append(
-                    AccuracyAlternative(f"any, {candidates[c].label}", "-", "", False, math.inf, note=note)
-                )
-                continue
-            alternatives += solver_alternatives(
-                system, y0, run_key, candidates[c], priced[c], rmse, h0, steps0, use_anti, antithetic, common
-            )
-    for note in skipped:
-        label = note.split(":", 1)[0]
-        alternatives.append(AccuracyAlternative(f"any, {label}", "-", label, False, math.inf, note=note))
-    cv_applies = control_variate and (solver is None or solver == "euler" or type(solver) is dfx.Euler)
-    if cv_applies and worth_pricing("control variate, euler", "control variate", "euler"):
-        alternatives.append(control_variate_alternative(system, y0, pilot_key, run_key, rmse, h0, steps0, common))
-    is_euler = [c.solver == "euler" or type(c.solver) is dfx.Euler for c in candidates]
-    euler = next((p for c, p in priced.items() if is_euler[c]), None)
-    qmc_applies = quasi_monte_carlo and euler is not None
-    if qmc_applies and worth_pricing("quasi-Monte Carlo, euler", "quasi-Monte Carlo", "euler"):
-        assert euler is not None
-        alternatives.append(
-            quasi_monte_carlo_alternative(system, y0, pilot_key, run_key, rmse, h0, steps0, euler, common)
-        )
-    pilots = [priced[c] for c in sorted(priced)]  # in the candidates' order
+    pricing.rmse = rmse
+    alternatives = price(estimators, pricing, first_solver, explore)
+    alternatives += [AccuracyAlternative(f"any, {note.split(':', 1)[0]}", math.inf, note=note) for note in skipped]
+    pilots = [pricing.pilots[c.label] for c in candidates if c.label in pricing.pilots]  # in the estimators' order
     pilot_work = sum(p.work for p in pilots) + failed_work
     pilot_work += sum(a.pilot_work for a in alternatives)
     per_sample = path_bytes(n_save, len(names), len(wrt))
-    alternatives = [dataclasses.replace(a, memory=peak_bytes(kept_samples(a) * per_sample)) for a in alternatives]
+    alternatives = [
+        dataclasses.replace(a, memory=peak_bytes(a.estimator.kept_samples(a) * per_sample)) if a.applies else a
+        for a in alternatives
+    ]
+    timed = pricing.timed
     if timed:
         rates = {p.solver: p.seconds_per_path_step for p in pilots}
-        alternatives = [dataclasses.replace(a, seconds=a.cost * rates.get(a.solver, math.nan)) for a in alternatives]
+        alternatives = [
+            dataclasses.replace(a, seconds=a.cost * rates.get(a.estimator.candidate.label, math.nan))
+            if a.applies
+            else a
+            for a in alternatives
+        ]
     key_of = (lambda a: a.seconds if math.isfinite(a.seconds) else math.inf) if timed else (lambda a: a.cost)
-    ranked = sorted((a for a in alternatives if a.run is not None and math.isfinite(key_of(a))), key=key_of)
+    ranked = sorted((a for a in alternatives if a.applies and math.isfinite(key_of(a))), key=key_of)
     if not ranked:
         raise ValueError(f"rmse={rmse:.3g}: no alternative can reach it from dt={h0}; see the pilot:\n{pilots}")
     fitting = [a for a in ranked if a.memory <= memory_limit()]
@@ -329,12 +379,11 @@ def to_accuracy(
     reason = f"cheapest predicted work ({key_of(chosen):.3g} {unit})"
     if len(ranked) > 1 and key_of(chosen) > 0:
         reason += f", {key_of(ranked[1]) / key_of(chosen):.2g}× below the next, {ranked[1].name}"
-    assert chosen.run is not None
     run_watch = Stopwatch()
     try:
-        estimate, bias = chosen.run()
+        estimate, bias = chosen.estimator.run(pricing, chosen)
     except SimulationError as e:  # a rare path blew up at a step the pilot's paths survived: from half the step
-        if not (default_step and steps0 < 2**MAX_PILOT_HALVINGS):
+        if not (default_step and pricing.steps0 < 2**MAX_PILOT_HALVINGS):
             raise
         failed = watch.cost(pilot_work + chosen.cost / chosen.kappa)  # this attempt (its run's work: the plan)
         retry = to_accuracy(**{**call, "dt": h0 / 2})

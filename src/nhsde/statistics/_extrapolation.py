@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+import diffrax as dfx
 import equinox as eqx
 import jax
 import numpy as np
@@ -76,7 +77,7 @@ def extrapolate(
     t1: float,
     dt: float,
     t0: float = 0.0,
-    solver="euler",
+    solver: str | dfx.AbstractSolver = "euler",
     order: int | None = None,
     save: Save | None = None,
     antithetic: bool = False,

@@ -38,6 +38,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+import diffrax as dfx
 import equinox as eqx
 import jax
 import numpy as np
@@ -64,6 +65,7 @@ from ._paths import (
     safe_sqrt,
 )
 from ._sensitivities import check_wrt
+from ._variance_reduction import check_reflectable
 
 __all__ = ["MultilevelEstimate", "multilevel_monte_carlo"]
 
@@ -175,7 +177,7 @@ def multilevel_monte_carlo(
     dt: float | None = None,
     steps: AbstractSteps | None = None,
     t0: float = 0.0,
-    solver="euler",
+    solver: str | dfx.AbstractSolver = "euler",
     save: Save | None = None,
     weak_order: float | None = None,
     antithetic: bool = False,
@@ -230,11 +232,8 @@ def multilevel_monte_carlo(
     solver_needs(coupling_solver(solver), system)
     if not isinstance(antithetic, bool):
         raise TypeError(f"antithetic={antithetic!r}; expected True or False.")
-    if antithetic and not system.noise.continuous:
-        raise ValueError(
-            f"antithetic=True: the driver {type(system.noise).__name__} has jumps, whose law is not symmetric under "
-            "W → −W; antithetic paths need a Wiener driver."
-        )
+    if antithetic:
+        check_reflectable(system.noise, "antithetic=True")
     if weak_order is None:
         alpha = 2 if isinstance(solver, PlatenWeak2) else 1
     else:

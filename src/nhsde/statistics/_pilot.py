@@ -21,7 +21,7 @@ from ._estimate import AbstractStatistic
 from ._paths import coupled_paths, coupling_solver, paired_moments
 from ._report import PilotSummary
 
-__all__ = ["Candidate", "candidate_solvers", "pick_moments", "run_pilot"]
+__all__ = ["Candidate", "candidate", "pick_moments", "run_pilot"]
 
 
 # --- the statistic --------------------------------------------------------------------------------------------
@@ -38,30 +38,31 @@ def pick_moments(statistic: AbstractStatistic, names: tuple[str, ...], moments) 
 
 @dataclasses.dataclass(frozen=True)
 class Candidate:
+    """A solver an estimator runs, with its weak order ``order`` and its name ``label`` in the report."""
+
     label: str
     solver: str | dfx.AbstractSolver
     order: int
 
+    def check(self, system: StochasticSystem) -> None:
+        """Raise ``ValueError`` naming ``solver=`` where the system's driver does not allow it."""
+        solver_needs(self.solver, system)
 
-def candidate_solvers(system: StochasticSystem, solver, weak_order) -> tuple[list[Candidate], list[str]]:
-    """The solvers to consider and, for the default set, notes on those that do not apply."""
-    if solver is not None:
-        coupling_solver(solver)
-        solver_needs(solver, system)  # raises naming solver= when it does not apply
-        order = 2 if isinstance(solver, PlatenWeak2) else 1
-        if weak_order is not None:
-            order = check_number("weak_order", weak_order, integer=True, positive=True)
-        label = solver if isinstance(solver, str) else type(solver).__name__
-        return [Candidate(str(label), solver, order)], []
-    out, notes = [], []
-    for label, s, p in (("euler", "euler", 1), ("weak2-gaussian", PlatenWeak2(increments="gaussian"), 2)):
-        try:
-            solver_needs(s, system)
-        except ValueError as e:
-            notes.append(f"{label}: {e}")
-            continue
-        out.append(Candidate(label, s, p))
-    return out, notes
+
+def candidate(solver: str | dfx.AbstractSolver, weak_order: int | None = None) -> Candidate:
+    """``solver`` as a :class:`Candidate`: weak order ``weak_order`` (default 2 for :class:`~nhsde.PlatenWeak2`, else
+    1); refused where solves at several steps on one Brownian path do not have the law of plain ones."""
+    coupling_solver(solver)
+    order = 2 if isinstance(solver, PlatenWeak2) else 1
+    if weak_order is not None:
+        order = check_number("weak_order", weak_order, integer=True, positive=True)
+    if isinstance(solver, str):
+        label = solver
+    elif isinstance(solver, PlatenWeak2):
+        label = f"weak2-{solver.increments}"
+    else:
+        label = type(solver).__name__
+    return Candidate(label, solver, order)
 
 
 # --- the pilot --------------------------------------------------------------------------------------------------

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -16,19 +16,17 @@ __all__ = ["AccuracyAlternative", "AccuracyResult", "PilotSummary"]
 
 @dataclasses.dataclass(frozen=True)
 class AccuracyAlternative:
-    """One way to reach the target: its predicted work (``cost``, path-steps; ``inf`` where it does not apply).
+    """One way to reach the target, as its ``estimator`` plans it: the predicted work (``cost``, path-steps; ``inf``
+    where it does not apply or was not priced, with the reason in ``note``).
 
-    ``dt`` is the step (plain Monte Carlo), the coarse step (extrapolation) or ``h₀``
-    (multilevel); ``n_paths`` the samples (pairs, with ``antithetic``), per level for multilevel.
-    ``kappa``: the cost of one of its path-steps in plain Euler path-steps (measured for quasi-Monte Carlo,
-    else 1), so that it predicts ``cost/kappa`` path-steps; ``memory``: the bytes its per-path values take at
-    their peak (:mod:`~nhsde.statistics._cost`).
+    ``dt`` is the step (plain Monte Carlo, the control variate, quasi-Monte Carlo), the coarse step
+    (extrapolation) or ``h₀`` (multilevel); ``n_paths`` the samples (pairs, with antithetic paths), per level
+    for multilevel, whose runs go in pieces of ``piece_paths``.  ``kappa``: the cost of one of its path-steps in
+    plain Euler path-steps (measured for quasi-Monte Carlo, else 1), so that it predicts ``cost/kappa``
+    path-steps; ``memory``: the bytes its per-path values take at their peak (:mod:`~nhsde.statistics._cost`).
     """
 
     name: str
-    method: str
-    solver: str
-    antithetic: bool
     cost: float
     dt: float = math.nan
     n_paths: tuple[int, ...] = ()
@@ -38,7 +36,13 @@ class AccuracyAlternative:
     pilot_work: float = 0.0
     kappa: float = 1.0
     memory: float = 0.0
-    run: Callable | None = dataclasses.field(default=None, repr=False, compare=False)
+    piece_paths: int = 0
+    estimator: Any = dataclasses.field(default=None, repr=False, compare=False)  # an AbstractEstimator
+
+    @property
+    def applies(self) -> bool:
+        """Whether it has a plan that reaches the target (a finite predicted work)."""
+        return math.isfinite(self.cost)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -26,7 +26,16 @@ from .._misc import is_concrete
 from .._system import StochasticSystem
 from .._weak import WeakIncrement
 
-__all__ = ["Antithetic", "antithetic"]
+__all__ = ["Antithetic", "antithetic", "check_reflectable"]
+
+
+def check_reflectable(driver: AbstractDriver, name: str) -> None:
+    """Raise ``ValueError`` naming ``name`` where ``driver`` has jumps: its law is not symmetric under ``W → −W``."""
+    if not driver.continuous:
+        raise ValueError(
+            f"{name}: the driver {type(driver).__name__} has jumps, whose law is not symmetric under W → −W; "
+            "antithetic paths need a Wiener driver."
+        )
 
 
 def _sign(value):
@@ -48,11 +57,7 @@ class Antithetic(AbstractDriver):
     continuous: ClassVar[bool] = True
 
     def __check_init__(self):
-        if not self.driver.continuous:
-            raise ValueError(
-                f"antithetic: the driver {type(self.driver).__name__} has jumps, whose law is not symmetric "
-                "under W → −W; antithetic paths need a Wiener driver."
-            )
+        check_reflectable(self.driver, "antithetic")
 
     def variance_rate(self):
         return self.driver.variance_rate()

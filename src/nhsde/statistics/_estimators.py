@@ -1,0 +1,476 @@
+"""The estimators :func:`~nhsde.statistics.to_accuracy` chooses among, as objects: each is checked against the
+system once (``check``), says where it does not apply (``applies``), predicts its work to the target from a pilot
+(``predict``: an :class:`AccuracyAlternative`, a plan without closures) and runs that plan (``run``).
+
+- :class:`PlainMonteCarlo`, :class:`Richardson` (Richardson–Romberg extrapolation) and :class:`Multilevel` read the
+  pilot of their solver (``m`` solves at ``h₀ 2^{−ℓ}`` on one Brownian path, :mod:`._pilot`), plain or antithetic;
+- :class:`ControlVariate` (the linearised system driven by the same increments) and :class:`QuasiMonteCarlo`
+  (scrambled Sobol' points) run pilots of their own, with Euler–Maruyama.
+
+The work models are those of the :mod:`._accuracy` module (``_cost.py``).
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+import math
+import time
+from typing import Any
+
+import diffrax as dfx
+import jax
+
+from .._brownian import BLOCK
+from .._ensemble import Save, SimulationError
+from .._misc import fold_key
+from .._options import Batching, FixedSteps
+from .._simulate import MAX_PATH_INDEX
+from .._system import StochasticSystem
+from ._control_variate import control_variate as linearised_control_variate
+from ._cost import MAX_REFINEMENTS, best_single, multilevel_plan, whole_pieces
+from ._estimate import AbstractEstimate, AbstractStatistic
+from ._extrapolation import extrapolate
+from ._multilevel import multilevel_monte_carlo
+from ._paths import RUN_PATHS, solve_paths
+from ._pilot import Candidate, candidate, run_pilot
+from ._qmc import MAX_DIMENSION, quasi_monte_carlo as randomised_quasi_monte_carlo
+from ._report import AccuracyAlternative, PilotSummary
+from ._variance_reduction import check_reflectable
+
+__all__ = [
+    "AbstractEstimator",
+    "ControlVariate",
+    "Multilevel",
+    "PlainMonteCarlo",
+    "Pricing",
+    "QuasiMonteCarlo",
+    "Richardson",
+]
+
+
+@dataclasses.dataclass
+class Pricing:
+    """What every estimator prices from and runs with: the system, the target ``rmse``, the coarsest step ``h0``
+    (``steps0`` steps), the run options, and the pilots of the solvers (run once each, on demand, :meth:`pilot`)."""
+
+    system: StochasticSystem
+    y0: Any
+    pilot_key: Any
+    run_key: Any
+    rmse: float
+    h0: float
+    steps0: int
+    t0: float
+    t1: float
+    save: Save  # names and times, per-path values kept
+    statistic: AbstractStatistic
+    pilot_paths: int
+    pilot_levels: int
+    batching: Batching | None
+    wrt: tuple[str, ...]
+    timed: bool
+    pilot_keys: dict[str, int]  # per solver label, the index its pilot key is folded with
+    antithetic_pilots: frozenset[str]  # the solver labels whose pilots also run the reflected paths
+    pilots: dict[str, PilotSummary] = dataclasses.field(default_factory=dict)
+
+    def pilot(self, cand: Candidate) -> PilotSummary:
+        """The pilot of ``cand`` at ``h0`` (run on first use; raises where its paths fail)."""
+        if cand.label not in self.pilots:
+            self.pilots[cand.label] = run_pilot(
+                self.system,
+                self.y0,
+                fold_key(self.pilot_key, self.pilot_keys[cand.label]),
+                cand,
+                t0=self.t0,
+                t1=self.t1,
+                h0=self.h0,
+                levels=self.pilot_levels,
+                n_paths=self.pilot_paths,
+                save=self.save,
+                anti=cand.label in self.antithetic_pilots,
+                batching=self.batching,
+                statistic=self.statistic,
+                timed=self.timed,
+            )
+        return self.pilots[cand.label]
+
+    def run_options(self, keep_paths: bool = True, tangents: bool = True) -> dict[str, Any]:
+        """The options every run shares: ``save`` without per-path values where the estimator keeps none, and the
+        parameters ``wrt`` unless ``tangents`` is false (pilots)."""
+        save = self.save if keep_paths else Save(names=self.save.names, n=self.save.n)
+        options: dict[str, Any] = dict(t0=self.t0, t1=self.t1, save=save, batching=self.batching)
+        return options | dict(wrt=self.wrt or None) if tangents else options
+
+
+class AbstractEstimator(abc.ABC):
+    """One way to reach a target RMSE (module).  ``solver`` and ``weak_order`` (default 2 for
+    :class:`~nhsde.PlatenWeak2`, else 1) fix the pilot it reads; ``antithetic`` runs reflected pairs."""
+
+    solver: str | dfx.AbstractSolver
+    weak_order: int | None
+    antithetic: bool
+    method: str  # its name in the report
+
+    @property
+    def candidate(self) -> Candidate:
+        """The solver whose pilot this estimator reads."""
+        return candidate(self.solver, self.weak_order)
+
+    @property
+    def name(self) -> str:
+        return f"{self.method}, {self.candidate.label}{', antithetic' if self.antithetic else ''}"
+
+    @property
+    def own_pilot(self) -> bool:
+        """Whether pricing runs a pilot of its own (beyond its solver's)."""
+        return False
+
+    def check(self, system: StochasticSystem) -> None:
+        """Raise ``ValueError`` naming the estimator where it cannot run on ``system`` at all."""
+        self.candidate.check(system)
+        if self.antithetic:
+            check_reflectable(system.noise, repr(self))
+
+    def applies(self, pricing: Pricing) -> str | None:
+        """Why it does not apply at this step (``None`` where it does)."""
+        return None
+
+    @abc.abstractmethod
+    def predict(self, pricing: Pricing) -> AccuracyAlternative:
+        """Its cheapest plan to ``pricing.rmse`` and that plan's predicted work (``inf`` where none reaches it)."""
+
+    @abc.abstractmethod
+    def run(self, pricing: Pricing, plan: AccuracyAlternative) -> tuple[AbstractEstimate, float]:
+        """The estimate of ``plan`` and its bias estimate."""
+
+    def kept_samples(self, plan: AccuracyAlternative) -> float:
+        """Per-path value sets its run keeps at their peak: one per solve of each sample."""
+        return (2 if self.antithetic else 1) * sum(plan.n_paths)
+
+    def row(self, note: str, pilot_work: float = 0.0) -> AccuracyAlternative:
+        """A report row for a plan it cannot make, with the reason."""
+        return AccuracyAlternative(self.name, math.inf, note=note, pilot_work=pilot_work, estimator=self)
+
+
+def _variances(pilot: PilotSummary, antithetic: bool):
+    return (
+        (pilot.antithetic_variance, pilot.antithetic_extrapolation_variance, pilot.antithetic_level_variances)
+        if antithetic
+        else (pilot.variance, pilot.extrapolation_variance, pilot.level_variances)
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class PlainMonteCarlo(AbstractEstimator):
+    """Plain Monte Carlo at its best ``(h, N)``: ``N = V/(ε² − C²h^{2p})``, work ``N T/h`` (Glasserman 2004,
+    §1.1.3), run as one level of :func:`~nhsde.statistics.multilevel_monte_carlo`."""
+
+    solver: str | dfx.AbstractSolver = "euler"
+    weak_order: int | None = None
+    antithetic: bool = False
+    method: str = dataclasses.field(default="plain MC", init=False, repr=False)
+
+    def predict(self, pricing: Pricing) -> AccuracyAlternative:
+        p = pricing.pilot(self.candidate)
+        factor = 2.0 if self.antithetic else 1.0
+        c, k, n, _ = best_single(
+            _variances(p, self.antithetic)[0], p.bias_bound, p.order, pricing.rmse, pricing.h0, pricing.steps0, factor
+        )
+        if k < 0:
+            return self.row("bias bound above the target at every step")
+        h = pricing.h0 / 2**k
+        bias = p.bias_constant * h**p.order
+        return AccuracyAlternative(self.name, c, dt=h, n_paths=(n,) if n else (), bias=bias, estimator=self)
+
+    def run(self, pricing: Pricing, plan: AccuracyAlternative) -> tuple[AbstractEstimate, float]:
+        n_total, piece = whole_pieces(plan.n_paths[0])
+        res = multilevel_monte_carlo(
+            pricing.system,
+            pricing.y0,
+            pricing.run_key,
+            n_paths=(n_total,),
+            dt=plan.dt,
+            solver=self.solver,
+            antithetic=self.antithetic,
+            piece_paths=piece,
+            statistic=pricing.statistic,
+            **pricing.run_options(),
+        )
+        return res, plan.bias
+
+
+@dataclasses.dataclass(frozen=True)
+class Richardson(AbstractEstimator):
+    """Richardson–Romberg extrapolation (:func:`~nhsde.statistics.extrapolate`) at its best ``(h, N)``: residual bias
+    ``C' h^{p+1}`` from the difference of two extrapolations, work ``3 N T/h`` (Talay & Tubaro 1990)."""
+
+    solver: str | dfx.AbstractSolver = "euler"
+    weak_order: int | None = None
+    antithetic: bool = False
+    method: str = dataclasses.field(default="extrapolation", init=False, repr=False)
+
+    def predict(self, pricing: Pricing) -> AccuracyAlternative:
+        p = pricing.pilot(self.candidate)
+        variance = _variances(p, self.antithetic)[1]
+        factor = 3 * (2.0 if self.antithetic else 1.0)
+        c, k, n, _ = best_single(
+            variance, p.extrapolation_bound, p.order + 1, pricing.rmse, pricing.h0, pricing.steps0, factor
+        )
+        if k < 0:
+            finite = math.isfinite(variance + p.extrapolation_bound)
+            return self.row("" if finite else "needs pilot_levels ≥ 3")
+        h = pricing.h0 / 2**k
+        bias = p.extrapolation_constant * h ** (p.order + 1)
+        return AccuracyAlternative(self.name, c, dt=h, n_paths=(n,) if n else (), bias=bias, estimator=self)
+
+    def run(self, pricing: Pricing, plan: AccuracyAlternative) -> tuple[AbstractEstimate, float]:
+        res = extrapolate(
+            pricing.system,
+            pricing.y0,
+            pricing.run_key,
+            n_paths=plan.n_paths[0],
+            dt=plan.dt,
+            solver=self.solver,
+            order=self.candidate.order,
+            antithetic=self.antithetic,
+            **pricing.run_options(),
+        )
+        return res, plan.bias
+
+    def kept_samples(self, plan: AccuracyAlternative) -> float:
+        return 2 * super().kept_samples(plan)  # the coarse and the fine solve
+
+
+@dataclasses.dataclass(frozen=True)
+class Multilevel(AbstractEstimator):
+    """Multilevel Monte Carlo (:func:`~nhsde.statistics.multilevel_monte_carlo`, Giles 2008): levels until
+    ``|C| h_L^p ≤ ε/√2``, ``V_ℓ`` beyond the pilot decaying at its rate, ``N_ℓ ∝ √(V_ℓ/C_ℓ)``, in whole pieces; run
+    with that allocation fixed (an allocation adapted from its own samples stops early on low variance estimates,
+    biasing a covariance low)."""
+
+    solver: str | dfx.AbstractSolver = "euler"
+    weak_order: int | None = None
+    antithetic: bool = False
+    method: str = dataclasses.field(default="multilevel", init=False, repr=False)
+
+    def predict(self, pricing: Pricing) -> AccuracyAlternative:
+        p = pricing.pilot(self.candidate)
+        c, counts, piece, n_levels = multilevel_plan(
+            _variances(p, self.antithetic)[2],
+            p.bias_bound,
+            p.order,
+            pricing.rmse,
+            pricing.steps0,
+            pricing.h0,
+            self.antithetic,
+            pricing.pilot_paths,
+        )
+        note = f"{n_levels} levels" if n_levels else "too many levels"
+        return AccuracyAlternative(
+            self.name, c, dt=pricing.h0, n_paths=counts, note=note, piece_paths=piece, estimator=self
+        )
+
+    def run(self, pricing: Pricing, plan: AccuracyAlternative) -> tuple[AbstractEstimate, float]:
+        res = multilevel_monte_carlo(
+            pricing.system,
+            pricing.y0,
+            pricing.run_key,
+            n_paths=plan.n_paths,
+            dt=plan.dt,
+            solver=self.solver,
+            weak_order=self.candidate.order,
+            antithetic=self.antithetic,
+            piece_paths=plan.piece_paths,
+            statistic=pricing.statistic,
+            **pricing.run_options(),
+        )
+        return res, float(res.bias)
+
+    def kept_samples(self, plan: AccuracyAlternative) -> float:
+        pairs = 2 if self.antithetic else 1
+        return pairs * sum(n * (2 if ell else 1) for ell, n in enumerate(plan.n_paths))
+
+
+@dataclasses.dataclass(frozen=True)
+class ControlVariate(AbstractEstimator):
+    """The control variate of :func:`~nhsde.statistics.control_variate` (Euler).  Pilot: it at the two finest pilot
+    steps on one Brownian path; its variance per path at the finest, its bias ``C h`` bounded by
+    ``(|ΔŶ| + 2(SE_a + SE_b))/h_b`` (``p = 1``)."""
+
+    solver: str = dataclasses.field(default="euler", init=False)
+    weak_order: int | None = dataclasses.field(default=None, init=False)
+    antithetic: bool = dataclasses.field(default=False, init=False)
+    method: str = dataclasses.field(default="control variate", init=False, repr=False)
+
+    @property
+    def own_pilot(self) -> bool:
+        return True
+
+    def predict(self, pricing: Pricing) -> AccuracyAlternative:
+        n_pilot, levels = pricing.pilot_paths, pricing.pilot_levels
+        h_a, h_b = pricing.h0 / 2 ** (levels - 2), pricing.h0 / 2 ** (levels - 1)
+        options = pricing.run_options(keep_paths=False, tangents=False)
+        try:
+            runs = [
+                linearised_control_variate(
+                    pricing.system,
+                    pricing.y0,
+                    fold_key(pricing.pilot_key, 99),
+                    n_paths=n_pilot,
+                    steps=FixedSteps(h, brownian_dt=h_b),
+                    **options,
+                )
+                for h in (h_a, h_b)
+            ]
+        except (ValueError, TypeError, NotImplementedError, SimulationError) as e:  # paths blowing up at this step
+            return self.row(f"does not apply: {e}")
+        (va, sa), (vb, sb) = (tuple(float(x) for x in r.value(pricing.statistic)) for r in runs)
+        if not all(math.isfinite(x) for x in (va, sa, vb, sb)):
+            return self.row("non-finite pilot")
+        work = sum(r.cost.path_steps for r in runs)
+        bound = (abs(vb - va) + 2 * (sa + sb)) / h_b
+        per_path_step = runs[1].cost.path_steps / n_pilot / (pricing.steps0 * 2 ** (levels - 1))
+        c, k, n, _ = best_single(sb**2 * n_pilot, bound, 1, pricing.rmse, pricing.h0, pricing.steps0, per_path_step)
+        if k < 0:
+            return self.row("no step reaches the target", work)
+        h = pricing.h0 / 2**k
+        bias = -(vb - va) / h_b * h  # E Ŷ(h) − S ≈ C h with C = −ΔŶ/h_b (p = 1)
+        return AccuracyAlternative(self.name, c, dt=h, n_paths=(n,), bias=bias, pilot_work=work, estimator=self)
+
+    def run(self, pricing: Pricing, plan: AccuracyAlternative) -> tuple[AbstractEstimate, float]:
+        res = linearised_control_variate(
+            pricing.system,
+            pricing.y0,
+            pricing.run_key,
+            n_paths=plan.n_paths[0],
+            dt=plan.dt,
+            **pricing.run_options(keep_paths=False),
+        )
+        return res, plan.bias
+
+    def kept_samples(self, plan: AccuracyAlternative) -> float:
+        return 2 * super().kept_samples(plan)  # the system and its control
+
+
+QMC_PILOT_REPLICATES = 8
+QMC_REPLICATES = 16
+
+
+@dataclasses.dataclass(frozen=True)
+class QuasiMonteCarlo(AbstractEstimator):
+    """Randomised quasi-Monte Carlo (:func:`~nhsde.statistics.quasi_monte_carlo`, Euler, ``p = 1``).
+
+    Pilot: 8 scramblings of ``n_q`` paths (``pilot_paths/8`` rounded down to a power of two, ≥ 64) at the finest pilot
+    step ``h_b``, run twice (the second, compiled, timed).  Its variance per path-equivalent
+    ``V_q = SE² · 8 n_q`` is assumed to fall only as ``1/N`` beyond the pilot, the Monte-Carlo rate: the
+    predicted work is an upper bound where quasi-Monte Carlo converges faster (``N^{−0.7} … N^{−1}`` on smooth
+    statistics).  The bias is Euler's, from the Euler pilot (the scrambled points give every path the law of a
+    Monte-Carlo path, so the scheme's bias is unchanged).  Work in Euler path-steps: its path-steps times ``κ``,
+    the measured seconds per path-step over those of a compiled plain Euler solve of the same paths and step
+    (its work is counted in the pilot's).  Steps ``h₀ 2^{−k}`` only while ``steps × channels`` stays within the
+    Sobol' dimensions; the run takes 16 scramblings of a power of two ≥ 64 paths each."""
+
+    solver: str = dataclasses.field(default="euler", init=False)
+    weak_order: int | None = dataclasses.field(default=None, init=False)
+    antithetic: bool = dataclasses.field(default=False, init=False)
+    method: str = dataclasses.field(default="quasi-Monte Carlo", init=False, repr=False)
+
+    @property
+    def own_pilot(self) -> bool:
+        return True
+
+    def applies(self, pricing: Pricing) -> str | None:
+        if pricing.steps0 & (pricing.steps0 - 1):
+            return f"does not apply: (t1 − t0)/dt = {pricing.steps0} steps, not a power of two"
+        if not pricing.system.noise.continuous:
+            return f"does not apply: the driver {type(pricing.system.noise).__name__} has jumps"
+        return None
+
+    def predict(self, pricing: Pricing) -> AccuracyAlternative:
+        euler = pricing.pilot(self.candidate)
+        options = pricing.run_options(keep_paths=False, tangents=False)
+        levels, steps0, h0 = pricing.pilot_levels, pricing.steps0, pricing.h0
+        h_b, steps_b = h0 / 2 ** (levels - 1), steps0 * 2 ** (levels - 1)
+        r_pilot = QMC_PILOT_REPLICATES  # n_q paths each, the other pilots' paths in all
+        n_q = max(BLOCK, 1 << ((pricing.pilot_paths // r_pilot).bit_length() - 1))
+        key = fold_key(pricing.pilot_key, 98)
+
+        def pilot(k):
+            start = time.perf_counter()
+            res = randomised_quasi_monte_carlo(
+                pricing.system, pricing.y0, k, n_paths=n_q, replicates=r_pilot, dt=h_b, **options
+            )
+            jax.block_until_ready((res.mean, res.cov, res.mean_se, res.cov_se))
+            return res, time.perf_counter() - start
+
+        try:
+            res, _ = pilot(key)
+            _, seconds = pilot(fold_key(key, 1))  # compiled now: time a second run
+        except (ValueError, TypeError, SimulationError) as e:  # paths blowing up: not at this step
+            return self.row(f"does not apply: {str(e).splitlines()[0][:200]}")
+        path_steps = r_pilot * n_q * steps_b
+        # κ against plain Euler Monte Carlo at the same step, in the compiled program the Euler alternatives run
+        # (the Euler pilot compiled it), in either cost mode: with cost='seconds' every Euler alternative's seconds
+        # are its Euler path-steps times the Euler pilot's rate, so quasi-Monte Carlo's must be too, via κ
+        n_ref = RUN_PATHS * math.ceil(path_steps / steps_b / RUN_PATHS)
+        reference = dict(steps=FixedSteps(h_b, brownian_dt=h_b), solver="euler", **pricing.run_options(tangents=False))
+        start = time.perf_counter()
+        jax.block_until_ready(
+            solve_paths(pricing.system, pricing.y0, fold_key(key, 2), first_path=0, n_paths=n_ref, **reference)
+        )
+        euler_rate = (time.perf_counter() - start) / (n_ref * steps_b)
+        kappa = seconds / path_steps / euler_rate if euler_rate > 0 else math.nan
+        work = 2 * path_steps + float(n_ref * steps_b)
+        value, se = (float(x) for x in res.value(pricing.statistic))
+        if not all(math.isfinite(x) for x in (value, se, kappa)):
+            return self.row("non-finite pilot", work)
+        max_k = max(-1, math.floor(math.log2(MAX_DIMENSION / (steps0 * pricing.system.noise_dim))))
+
+        def per_replicate(n: float) -> int:  # a power of two ≥ 64
+            return max(BLOCK, 1 << max(0, math.ceil(math.log2(max(n, 1.0) / QMC_REPLICATES))))
+
+        cost, k, n_total, _ = best_single(
+            se**2 * r_pilot * n_q,
+            euler.bias_bound,
+            1,
+            pricing.rmse,
+            h0,
+            steps0,
+            kappa,
+            min(max_k, MAX_REFINEMENTS),
+            lambda n: QMC_REPLICATES * per_replicate(n),
+        )
+        if k < 0:
+            return self.row("no step reaches the target within the Sobol' dimensions", work)
+        per = n_total // QMC_REPLICATES
+        if per > MAX_PATH_INDEX // 2:
+            note = f"needs {per:.3g} paths per scrambling, more than the {MAX_PATH_INDEX // 2 + 1} a key indexes"
+            return self.row(note, work)
+        h = h0 / 2**k
+        return AccuracyAlternative(
+            self.name,
+            cost,
+            dt=h,
+            n_paths=(QMC_REPLICATES * per,),
+            bias=euler.bias_constant * h,  # E S(h) − S ≈ C h (p = 1), Euler's
+            note=f"{QMC_REPLICATES} × {per} paths, κ = {kappa:.3g}",
+            pilot_work=work,
+            kappa=kappa,
+            estimator=self,
+        )
+
+    def run(self, pricing: Pricing, plan: AccuracyAlternative) -> tuple[AbstractEstimate, float]:
+        res = randomised_quasi_monte_carlo(
+            pricing.system,
+            pricing.y0,
+            pricing.run_key,
+            n_paths=plan.n_paths[0] // QMC_REPLICATES,
+            replicates=QMC_REPLICATES,
+            dt=plan.dt,
+            **pricing.run_options(keep_paths=False),
+        )
+        return res, plan.bias
+
+    def kept_samples(self, plan: AccuracyAlternative) -> float:
+        return 0.0  # moments only
