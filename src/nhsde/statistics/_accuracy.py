@@ -23,11 +23,11 @@ differences.  For a target RMSE ``ε`` it predicts the work (path-steps) of
   (run with this allocation fixed);
 - each of these with antithetic pairs (work doubled, the pair's variance);
 - a control variate, where :mod:`nhsde.statistics` provides one;
-- randomised quasi-Monte Carlo (:func:`quasi_monte_carlo`, Euler, 16 scramblings of a power of two
+- randomised quasi-Monte Carlo (:func:`quasi_monte_carlo`, with each solver, 16 scramblings of a power of two
   paths each), where ``(t1 − t0)/h₀`` is a power of two and the driver is continuous: its variance
   from a pilot of 8 scramblings, its error assumed to fall only as ``N^{−1/2}`` beyond it (so its predicted work
-  is an upper bound where it converges faster), Euler's bias bound, and its work converted to Euler
-  path-steps by the measured ratio ``κ`` of its seconds per path-step to plain Euler Monte Carlo's;
+  is an upper bound where it converges faster), its solver's bias bound, and its work converted to that solver's
+  plain path-steps by the measured ratio ``κ`` of its seconds per path-step to plain Monte Carlo's;
 
 runs the cheapest whose per-path values fit in memory (``_cost.py``; none fits: a
 ``ValueError`` with the size) and returns its value, standard error and bias estimate
@@ -107,7 +107,8 @@ def default_estimators(
         kind(s, w, anti) for s, w in solvers for anti in variants for kind in (PlainMonteCarlo, Richardson, Multilevel)
     ]
     if any(_is_euler(s) for s, _ in solvers):
-        estimators += [ControlVariate(), QuasiMonteCarlo()]
+        estimators.append(ControlVariate())
+    estimators += [QuasiMonteCarlo(s, w) for s, w in solvers]
     return estimators, notes
 
 
@@ -197,8 +198,8 @@ def to_accuracy(
       :class:`Multilevel`, each with its solver and plain or antithetic paths; :class:`ControlVariate`,
       :class:`QuasiMonteCarlo`).  Default: each of the first three for Euler–Maruyama and
       ``PlatenWeak2(increments='gaussian')`` (those the system's driver allows), plain and antithetic (Wiener
-      drivers), then the control variate and quasi-Monte Carlo; ``solver``, ``weak_order`` and ``antithetic``
-      narrow that default set:
+      drivers), then the control variate (Euler) and quasi-Monte Carlo with each solver; ``solver``,
+      ``weak_order`` and ``antithetic`` narrow that default set:
     - ``solver``: consider only this one (``PlatenWeak2`` needs ``increments='gaussian'``),
       of weak order ``weak_order`` (default 2 for ``PlatenWeak2``, else 1).
     - ``antithetic``: ``None`` considers both plain and antithetic paths (Wiener drivers),
@@ -209,14 +210,14 @@ def to_accuracy(
       size).
     - ``cost``: ``'path-steps'``, or ``'seconds'`` (path-steps times each solver's
       measured seconds per path-step from a second, compiled, pilot run).
-    - Quasi-Monte Carlo (Euler) applies where ``(t1 − t0)/dt`` is a power of two and the driver is continuous.  Its
-      pilot (8 scramblings of ``pilot_paths/8`` paths rounded down to a power of two, run twice to time it) predicts
-      its work from its variance at the Monte-Carlo rate ``N^{−1/2}``, an upper bound where it converges faster; its
-      work is counted in Euler path-steps (times the measured cost ratio ``κ``, in the report's note).
+    - Quasi-Monte Carlo applies where ``(t1 − t0)/dt`` is a power of two and the driver is continuous.  Its pilot
+      (8 scramblings of ``pilot_paths/8`` paths rounded down to a power of two, run twice to time it) predicts its
+      work from its variance at the Monte-Carlo rate ``N^{−1/2}``, an upper bound where it converges faster; its
+      work is counted in its solver's plain path-steps (times the measured cost ratio ``κ``, in the report's note).
     - ``explore``: price every alternative.  By default (``False``) the first solver's pilot (the highest weak
       order among the estimators' solvers) prices the estimators of that solver, and a further pilot (another
-      solver's, the control variate's, quasi-Monte Carlo's) runs only when the best run so far is predicted to take more
-      than :data:`EXPLORE_ABOVE` times the first pilot's path-steps (the rule counts work, not seconds, so a key
+      solver's, the control variate's, quasi-Monte Carlo's) runs only when the best run so far is predicted to take
+      more than :data:`EXPLORE_ABOVE` times the first pilot's path-steps (the rule counts work, not seconds, so a key
       gives the same choice on any machine and with any cache): a loose target is answered after one compiled
       program, a tight one after all.  Alternatives not priced are listed with the reason; a further solver whose
       pilot fails at the step is listed as not applying.

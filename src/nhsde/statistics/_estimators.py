@@ -4,8 +4,8 @@ system once (``check``), says where it does not apply (``applies``), predicts it
 
 - :class:`PlainMonteCarlo`, :class:`Richardson` (Richardson–Romberg extrapolation) and :class:`Multilevel` read the
   pilot of their solver (``m`` solves at ``h₀ 2^{−ℓ}`` on one Brownian path, :mod:`._pilot`), plain or antithetic;
-- :class:`ControlVariate` (the linearised system driven by the same increments) and :class:`QuasiMonteCarlo`
-  (scrambled Sobol' points) run pilots of their own, with Euler–Maruyama.
+- :class:`ControlVariate` (the linearised system driven by the same increments, Euler–Maruyama) and
+  :class:`QuasiMonteCarlo` (scrambled Sobol' points, with its solver) run pilots of their own.
 
 The work models are those of the :mod:`._accuracy` module (``_cost.py``).
 """
@@ -359,21 +359,22 @@ QMC_REPLICATES = 16
 
 @dataclasses.dataclass(frozen=True)
 class QuasiMonteCarlo(AbstractEstimator):
-    """Randomised quasi-Monte Carlo (:func:`~nhsde.statistics.quasi_monte_carlo`, Euler, ``p = 1``).
+    """Randomised quasi-Monte Carlo (:func:`~nhsde.statistics.quasi_monte_carlo`) with ``solver``: Euler (``p = 1``)
+    or :class:`~nhsde.PlatenWeak2` with Gaussian increments (``p = 2``; ``W`` from the Sobol' points).
 
     Pilot: 8 scramblings of ``n_q`` paths (``pilot_paths/8`` rounded down to a power of two, ≥ 64) at the finest pilot
     step ``h_b``, run twice (the second, compiled, timed).  Its variance per path-equivalent
     ``V_q = SE² · 8 n_q`` is assumed to fall only as ``1/N`` beyond the pilot, the Monte-Carlo rate: the
     predicted work is an upper bound where quasi-Monte Carlo converges faster (``N^{−0.7} … N^{−1}`` on smooth
-    statistics).  The bias is Euler's, from the Euler pilot (the scrambled points give every path the law of a
-    Monte-Carlo path, so the scheme's bias is unchanged).  Work in Euler path-steps: its path-steps times ``κ``,
-    the measured seconds per path-step over those of a compiled plain Euler solve of the same paths and step
-    (its work is counted in the pilot's).  Steps ``h₀ 2^{−k}`` only while ``steps × channels`` stays within the
-    Sobol' dimensions; the run takes 16 scramblings of a power of two ≥ 64 paths each."""
+    statistics).  The bias is the solver's, from its pilot (the scrambled points give every path the law of a
+    Monte-Carlo path, so the scheme's bias is unchanged).  Work in the solver's plain path-steps: its path-steps
+    times ``κ``, the measured seconds per path-step over those of a compiled plain solve with the same solver,
+    paths and step (its work is counted in the pilot's).  Steps ``h₀ 2^{−k}`` only while ``steps × channels``
+    stays within the Sobol' dimensions; the run takes 16 scramblings of a power of two ≥ 64 paths each."""
 
-    solver: str = dataclasses.field(default="euler", init=False)
-    weak_order: int | None = dataclasses.field(default=None, init=False)
-    antithetic: bool = dataclasses.field(default=False, init=False)
+    solver: str | dfx.AbstractSolver = "euler"
+    weak_order: int | None = None
+    antithetic: bool = dataclasses.field(default=False, init=False, repr=False)
     method: str = dataclasses.field(default="quasi-Monte Carlo", init=False, repr=False)
 
     @property
@@ -388,8 +389,8 @@ class QuasiMonteCarlo(AbstractEstimator):
         return None
 
     def predict(self, pricing: Pricing) -> AccuracyAlternative:
-        euler = pricing.pilot(self.candidate)
-        options = pricing.run_options(keep_paths=False, tangents=False)
+        own = pricing.pilot(self.candidate)
+        options: dict[str, Any] = pricing.run_options(keep_paths=False, tangents=False) | dict(solver=self.solver)
         levels, steps0, h0 = pricing.pilot_levels, pricing.steps0, pricing.h0
         h_b, steps_b = h0 / 2 ** (levels - 1), steps0 * 2 ** (levels - 1)
         r_pilot = QMC_PILOT_REPLICATES  # n_q paths each, the other pilots' paths in all
@@ -410,11 +411,13 @@ class QuasiMonteCarlo(AbstractEstimator):
         except (ValueError, TypeError, SimulationError) as e:  # paths blowing up: not at this step
             return self.row(f"does not apply: {str(e).splitlines()[0][:200]}")
         path_steps = r_pilot * n_q * steps_b
-        # κ against plain Euler Monte Carlo at the same step, in the compiled program the Euler alternatives run
-        # (the Euler pilot compiled it), in either cost mode: with cost='seconds' every Euler alternative's seconds
-        # are its Euler path-steps times the Euler pilot's rate, so quasi-Monte Carlo's must be too, via κ
+        # κ against plain Monte Carlo with the solver at the same step, in the compiled program its other
+        # alternatives run (its pilot compiled it), in either cost mode: with cost='seconds' every alternative's
+        # seconds are its path-steps times its pilot's rate, so quasi-Monte Carlo's must be too, via κ
         n_ref = RUN_PATHS * math.ceil(path_steps / steps_b / RUN_PATHS)
-        reference = dict(steps=FixedSteps(h_b, brownian_dt=h_b), solver="euler", **pricing.run_options(tangents=False))
+        reference = dict(
+            steps=FixedSteps(h_b, brownian_dt=h_b), solver=self.solver, **pricing.run_options(tangents=False)
+        )
         start = time.perf_counter()
         jax.block_until_ready(
             solve_paths(pricing.system, pricing.y0, fold_key(key, 2), first_path=0, n_paths=n_ref, **reference)
@@ -432,8 +435,8 @@ class QuasiMonteCarlo(AbstractEstimator):
 
         cost, k, n_total, _ = best_single(
             se**2 * r_pilot * n_q,
-            euler.bias_bound,
-            1,
+            own.bias_bound,
+            own.order,
             pricing.rmse,
             h0,
             steps0,
@@ -453,7 +456,7 @@ class QuasiMonteCarlo(AbstractEstimator):
             cost,
             dt=h,
             n_paths=(QMC_REPLICATES * per,),
-            bias=euler.bias_constant * h,  # E S(h) − S ≈ C h (p = 1), Euler's
+            bias=own.bias_constant * h**own.order,  # E S(h) − S ≈ C h^p, the solver's
             note=f"{QMC_REPLICATES} × {per} paths, κ = {kappa:.3g}",
             pilot_work=work,
             kappa=kappa,
@@ -461,6 +464,7 @@ class QuasiMonteCarlo(AbstractEstimator):
         )
 
     def run(self, pricing: Pricing, plan: AccuracyAlternative) -> tuple[AbstractEstimate, float]:
+        options: dict[str, Any] = pricing.run_options(keep_paths=False) | dict(solver=self.solver)
         res = randomised_quasi_monte_carlo(
             pricing.system,
             pricing.y0,
@@ -468,7 +472,7 @@ class QuasiMonteCarlo(AbstractEstimator):
             n_paths=plan.n_paths[0] // QMC_REPLICATES,
             replicates=QMC_REPLICATES,
             dt=plan.dt,
-            **pricing.run_options(keep_paths=False),
+            **options,
         )
         return res, plan.bias
 
