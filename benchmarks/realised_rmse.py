@@ -1,7 +1,8 @@
 """Realised RMSE of ``to_accuracy`` against the RMSE it was asked for, estimator by estimator, over many keys.
 
     python benchmarks/realised_rmse.py [--scenes sleigh,chaplygin-ball,body] [--estimators NAME,...]
-                                       [--keys 20] [--rel 1e-2] [--out FILE]
+                                       [--keys 20] [--rel 1e-2] [--dt H] [--out FILE]
+    python benchmarks/realised_rmse.py --merge FILE [FILE ...] [--out FILE]
 
 For each scene of :mod:`benchmarks.estimators` with an exact value (the sleigh ``E[H](2)``, closed form;
 Chaplygin's ball ``E[H](4)``, the stationary ``3ν/(8ε)``; the body on the vibrating plane ``E[H](1)``, against
@@ -26,9 +27,12 @@ Per cell, over the runs that returned (float64):
   for the body the reference's σ_ref is added to each SE in quadrature).
 
 An estimator that does not apply (``to_accuracy`` raises ``ValueError``: no alternative reaches the target) is
-recorded with the exception text; any other exception on a key is recorded for that key and the cell goes on.
+recorded with the exception text, key by key (whether it applies can depend on the key: a pilot whose paths grow
+huge but stay finite); the statistics are over the keys that returned.
 Writes ``--out`` (default benchmarks/results/realised_rmse.json) after every scene × estimator and prints a
-markdown table at the end.
+markdown table at the end.  ``--dt H`` gives ``to_accuracy`` that coarsest step instead of its default (a
+supplementary run where the default fails); ``--merge`` only merges result files (e.g. one per scene, run as
+separate processes) into ``--out`` and prints their table.
 """
 
 from __future__ import annotations
@@ -97,7 +101,7 @@ def bound_with_reference(n: int, ref_ratio: float, level: float = 0.99, draws: i
     return float(np.quantile(np.sqrt(np.mean(x**2, axis=1)), level))
 
 
-def one_run(case, estimator, key_index, eps):
+def one_run(case, estimator, key_index, eps, dt=None):
     """One ``to_accuracy`` call: a dict of what it returned (or the exception)."""
     start = time.perf_counter()
     try:
@@ -109,6 +113,7 @@ def one_run(case, estimator, key_index, eps):
             statistic=case["target"],
             rmse=eps,
             save=case["save"],
+            dt=dt,
             estimators=(estimator,),
         )
     except Exception as e:  # recorded, never hidden
@@ -163,6 +168,9 @@ def summarise(runs, exact, eps, ref_se):
         coverage=float(np.mean(np.abs(errors) <= 2 * np.sqrt(ses**2 + ref_se**2))),
         mean_se_over_eps=float(np.mean(ses) / eps),
         mean_abs_bias_over_eps=float(np.mean(np.abs([r["bias"] for r in ok])) / eps),
+        mean_error_over_eps=float(np.mean(errors) / eps),
+        sd_error_over_eps=float(np.std(errors, ddof=1) / eps) if n > 1 else math.nan,
+        mean_bias_over_eps=float(np.mean([r["bias"] for r in ok]) / eps),
         mean_path_steps=float(np.mean([r["path_steps"] for r in ok])),
         mean_seconds=float(np.mean([r["seconds"] for r in ok])),
         mean_seconds_after_first=float(np.mean(warm)),
@@ -175,31 +183,40 @@ def summarise(runs, exact, eps, ref_se):
     return out
 
 
+def label(cell):
+    """The estimator's name, with the coarsest step where one was given."""
+    return cell["estimator"] + (f" (dt={cell['dt']:g})" if cell.get("dt") else "")
+
+
 def table(cells):
     """Markdown table of the cells."""
     lines = [
-        "| scene | estimator | RMSE/ε | 99 % bound | mean err / SE | coverage (±2 SE) | mean path-steps "
-        "| mean s (first) | chosen / notes |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---|",
+        "| scene | estimator | RMSE/ε | 99 % bound | mean err / SE | mean err/ε (bias est./ε) | SD err/ε (mean SE/ε) "
+        "| coverage (±2 SE) | mean path-steps | mean s (first) | chosen / notes |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
     for c in cells:
         s = c["summary"]
         if not s.get("n_ok"):
             msg = c["runs"][0]["message"].splitlines()[0][:140] if c["runs"] else c.get("skipped", "")
             exc = c["runs"][0]["exception"] if c["runs"] else ""
-            lines.append(f"| {c['scene']} | {c['estimator']} | – | – | – | – | – | – | {exc}: {msg} |")
+            lines.append(f"| {c['scene']} | {label(c)} | – | – | – | – | – | – | – | – | {exc}: {msg} |")
             continue
         notes = "; ".join(s["choices"][:3])
         if s["n_failed"]:
-            notes += f"; {s['n_failed']}/{s['n_runs']} raised"
+            failed = [r for r in c["runs"] if not r["ok"]]
+            first = failed[0]["message"].splitlines()[0][:90]
+            notes += f"; {s['n_failed']}/{s['n_runs']} raised ({failed[0]['exception']}: {first})"
         if s["retried"]:
             notes += f"; {s['retried']} retried from dt/2"
         if len(s["h0s"]) > 1 or s["h0s"][0] != c["default_h0"]:
             notes += f"; h0 {','.join(f'{h:g}' for h in s['h0s'])}"
         mark = "" if s["passes"] else " **fail**"
         lines.append(
-            f"| {c['scene']} | {c['estimator']} | {s['ratio']:.2f}{mark} | {s['bound99']:.2f} | "
-            f"{s['mean_error_in_se']:+.1f} | {s['coverage']:.2f} | {s['mean_path_steps']:.3g} | "
+            f"| {c['scene']} | {label(c)} | {s['ratio']:.2f}{mark} | {s['bound99']:.2f} | "
+            f"{s['mean_error_in_se']:+.1f} | {s['mean_error_over_eps']:+.2f} ({s['mean_bias_over_eps']:+.2f}) | "
+            f"{s['sd_error_over_eps']:.2f} ({s['mean_se_over_eps']:.2f}) | {s['coverage']:.2f} | "
+            f"{s['mean_path_steps']:.3g} | "
             f"{s['mean_seconds_after_first']:.1f} ({s['first_seconds']:.0f}) | {notes} (n={s['n_ok']}) |"
         )
     return "\n".join(lines)
@@ -214,7 +231,22 @@ def main():
     parser.add_argument("--rel", type=float, default=1e-2, help="target RMSE relative to |exact|")
     parser.add_argument("--out", default=str(OUT / "realised_rmse.json"))
     parser.add_argument("--append", action="store_true", help="keep the cells already in --out (other scenes)")
+    parser.add_argument(
+        "--dt", type=float, help="the coarsest step given to to_accuracy (default: none, its own default)"
+    )
+    parser.add_argument("--merge", nargs="+", help="only merge these result files into --out and print the table")
     args = parser.parse_args()
+    if args.merge:
+        records = [json.loads(pathlib.Path(f).read_text()) for f in args.merge]
+        by_cell = {}  # a later file's cell replaces an earlier one of the same scene, estimator and dt
+        for c in (c for r in records for c in r["cells"]):
+            c["summary"] = summarise(c["runs"], c["exact"], c["rmse"], c["reference_se"])  # this version's
+            by_cell[(c["scene"], c["estimator"], c.get("dt"))] = c
+        cells = list(by_cell.values())
+        merged = dict(sources=args.merge, machines=[r["machine"] for r in records], cells=cells, table=table(cells))
+        pathlib.Path(args.out).write_text(json.dumps(merged, indent=2, default=str))
+        print(merged["table"] + f"\nwrote {args.out}")
+        return
     scenes = [s.strip() for s in args.scenes.split(",") if s.strip()]
     chosen = [s.strip() for s in args.estimators.split(",") if s.strip()]
     bad = [s for s in scenes if s not in SCENES] + [e for e in chosen if e not in names]
@@ -251,13 +283,14 @@ def main():
                 reference_se=ref_se,
                 rmse=eps,
                 rel=args.rel,
-                default_h0=case["t1"] / 4,
+                default_h0=case["t1"] / 4 if args.dt is None else args.dt,
+                dt=args.dt,
                 runs=[],
             )
             cells[:] = [c for c in cells if not (c["scene"] == scene and c["estimator"] == name)]
             cells.append(cell)
             for i in range(args.keys):
-                run = one_run(case, est, 1000 + i, eps)
+                run = one_run(case, est, 1000 + i, eps, args.dt)
                 cell["runs"].append(run)
                 if run["ok"]:
                     print(
@@ -268,9 +301,6 @@ def main():
                     )
                 else:
                     print(f"  {name:<22} key {1000 + i}: {run['exception']}: {run['message'][:300]}", flush=True)
-                    if i == 0 and run["exception"] == "ValueError":  # does not apply: the same for every key
-                        cell["skipped"] = "ValueError on the first key: not run on the others"
-                        break
                 cell["summary"] = summarise(cell["runs"], exact, eps, ref_se)
                 machine["loadavg_now"] = os.getloadavg()
                 path.write_text(json.dumps(record, indent=2, default=str))
