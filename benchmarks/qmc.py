@@ -41,6 +41,19 @@ vibrating plane E[H(t1)] (state-dependent noise, converted to Itô).  The RMSE
 is about the Euler expectation at that step (both estimators are unbiased for it).
 
 Prints the table and writes ``results/qmc.json`` (``--quick`` writes nothing unless given ``--out``).
+
+``--library`` measures the library's ``nhsde.statistics.quasi_monte_carlo`` instead, on the sleigh's
+E[H](2) (ε 0.5, ν 1, h = 1/8), every competitor in one process, warm (best of ``--rounds``):
+
+- κ: seconds per path-step of QMC Euler (16 scramblings) over those of plain Euler ``nhsde.simulate`` of
+  the same paths and step, at 1024 and 4096 points per scrambling;
+- wall time to a standard error ``--target-se`` of QMC Euler, QMC ``PlatenWeak2(increments='gaussian')``
+  and plain Monte Carlo ``weak2`` (three-point) and weak2-gaussian: QMC doubles its points per scrambling
+  until its reported SE is below the target; plain MC runs ``σ²/target²`` paths from a pilot's ``σ²``.
+  Each row reports its bias against the closed form ``H0 e^{−4εt} + ν(1 − e^{−4εt})/(4ε)``.
+
+Run it against an older library with ``PYTHONPATH=<old>/src`` for the "before" numbers (solvers that
+library refuses are reported as such).
 """
 
 from __future__ import annotations
@@ -323,6 +336,66 @@ def run_case(name, args):
     )
 
 
+def library(args):
+    """The library's QMC on the sleigh's E[H](2): κ against plain Euler and wall time to ``args.target_se`` (module)."""
+    from estimators import sleigh_case
+
+    from nhsde.statistics import quasi_monte_carlo
+
+    case = sleigh_case()
+    system, y0, t1, save, exact = case["system"], case["y0"], case["t1"], case["save"], case["exact"]
+    dt, replicates = 1 / 8, 16
+    steps = round(t1 / dt)
+    gaussian = nhsde.PlatenWeak2(increments="gaussian")
+
+    def qmc(n, solver="euler", key=0):
+        return quasi_monte_carlo(
+            system, y0, jax.random.key(key), n_paths=n, t1=t1, dt=dt, replicates=replicates, solver=solver, save=save
+        )
+
+    def mc(n, solver, key=0):
+        return nhsde.simulate(system, y0, jax.random.key(key), n_paths=n, t1=t1, dt=dt, solver=solver, save=save)
+
+    def timed(fn):
+        return best_seconds(lambda: fn().mean, args.rounds)
+
+    print(f"[library] sleigh E[H(2)] = {exact:.6g}, h = {dt:g} ({steps} steps), {replicates} scramblings")
+    kappa = {}
+    for n in (1024, 4096):
+        t_q, t_e = timed(lambda n=n: qmc(n)), timed(lambda n=n: mc(replicates * n, "euler"))
+        kappa[n] = t_q / t_e
+        print(
+            f"  κ at {n} points × {replicates}: QMC {t_q * 1e3:.1f} ms, plain Euler {t_e * 1e3:.1f} ms, "
+            f"κ {t_q / t_e:.2f}"
+        )
+
+    rows = []
+    for label, solver in (("QMC euler", "euler"), ("QMC weak2-gaussian", gaussian)):
+        n, res = BLOCK, None
+        try:
+            while (res := qmc(n, solver)).mean_se[-1, 0] > args.target_se:
+                n *= 2
+        except ValueError as e:
+            print(f"  {label}: refused ({str(e).splitlines()[0][:120]})")
+            continue
+        seconds = timed(lambda n=n, solver=solver: qmc(n, solver, key=1))
+        rows.append((label, replicates * n, float(res.mean_se[-1, 0]), float(res.mean[-1, 0]) - exact, seconds))
+    for label, solver in (("MC weak2", "weak2"), ("MC weak2-gaussian", gaussian)):
+        pilot = mc(1 << 14, solver)
+        n = BLOCK * math.ceil(float(pilot.mean_se[-1, 0]) ** 2 * (1 << 14) / args.target_se**2 / BLOCK)
+        res = mc(n, solver, key=1)
+        seconds = timed(lambda n=n, solver=solver: mc(n, solver, key=1))
+        rows.append((label, n, float(res.mean_se[-1, 0]), float(res.mean[-1, 0]) - exact, seconds))
+    print(f"  to SE {args.target_se:g}:")
+    for label, n, se, bias, seconds in rows:
+        ratio = seconds / rows[-1][-1]
+        print(
+            f"    {label:<20} {n:>9} paths  SE {se:.2e}  error {bias:+.2e}  {seconds * 1e3:8.1f} ms "
+            f"({ratio:.3f}× MC weak2-gaussian)"
+        )
+    return kappa, rows
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="R = 16, N ≤ 4096, fewer MC paths")
@@ -332,7 +405,12 @@ def main():
     parser.add_argument("--sanity-paths", type=int, default=1 << 16)
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--out", default=None, help="JSON path (default results/qmc.json; none with --quick)")
+    parser.add_argument("--library", action="store_true", help="time the library's QMC on the sleigh (module)")
+    parser.add_argument("--target-se", type=float, default=1e-4, help="--library: the standard error to reach")
     args = parser.parse_args()
+    if args.library:
+        library(args)
+        return
     args.ns = [256, 1024, 4096] if args.quick else [256, 1024, 4096, 16384]
     if args.quick:
         args.reps, args.mc_paths, args.sanity_paths = 16, 1 << 14, 1 << 14
