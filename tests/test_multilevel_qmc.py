@@ -69,6 +69,25 @@ def test_ball_covariance_within_its_errors_and_bias_bound():
     np.testing.assert_allclose(float(np.sum(r.level_means)), value, rtol=1e-12)
 
 
+def test_gaussian_weak2_ball_covariance_within_its_errors_and_bias_bound():
+    """PlatenWeak2(increments='gaussian') on every level (ΔW from the points, V pseudo-random): K_xx(1) of the ball
+    to 1% RMSE within 4 reported SE plus the reported bias bound (weak order 2) of the exact value."""
+    exact = float(ball_covariances(jnp.float64(1.0), 1.0, 1.0, DELTA)[0])
+    solver = nhsde.PlatenWeak2(increments="gaussian")
+    r = multilevel_quasi_monte_carlo(
+        BALL.build(),
+        Y0,
+        jax.random.key(8),
+        t1=1.0,
+        dt=0.25,
+        statistic=("cov", "x", "x"),
+        rmse=1e-2 * exact,
+        solver=solver,
+    )
+    value, se = (float(x) for x in r.value())
+    assert abs(value - exact) <= 4 * se + float(r.bias), (value, exact, se, float(r.bias))
+
+
 def test_sleigh_energy_agrees_with_multilevel_monte_carlo_with_less_work_and_one_program(compiles):
     """E[H](1) on the sleigh: within 4 combined SE of multilevel Monte Carlo's; halving the RMSE (2e-2 → 1e-2)
     multiplies the work by less than 4 (cost exponent above −2) and compiles no new program although it adds a
