@@ -127,8 +127,10 @@ def test_gaussian_weak2_on_the_sleigh_has_weak_order_two_and_keeps_the_variance_
     system, y0 = ChaplyginSleigh(eps=eps, nu=nu, drift=False).build(), jnp.array([1.0, 0.5])
     exact = 0.75 * math.exp(-4 * eps * t1) + nu * (1 - math.exp(-4 * eps * t1)) / (4 * eps)
     save = nhsde.Save(names=("energy",), n=2)
-    opts = dict(n_paths=1024, t1=t1, solver=GAUSSIAN_WEAK2, save=save)
-    coarse, fine = (quasi_monte_carlo(system, y0, jax.random.key(6), dt=dt, **opts) for dt in (0.25, 0.125))
+    coarse, fine = (
+        quasi_monte_carlo(system, y0, jax.random.key(6), n_paths=1024, t1=t1, dt=dt, solver=GAUSSIAN_WEAK2, save=save)
+        for dt in (0.25, 0.125)
+    )
     (e_h, s_h), (e_f, s_f) = ((float(r.mean[-1, 0]), float(r.mean_se[-1, 0])) for r in (coarse, fine))
     assert abs(e_h - exact) > 8 * s_h  # the bias at h = 1/4 is resolved
     assert abs((4 * e_f - e_h) / 3 - exact) < 4 * math.hypot(4 * s_f, s_h) / 3

@@ -27,6 +27,7 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
+import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -193,7 +194,7 @@ def multilevel_quasi_monte_carlo(
     rmse: float | None = None,
     n_points: Sequence[int] | None = None,
     t0: float = 0.0,
-    solver="euler",
+    solver: str | dfx.AbstractSolver = "euler",
     save: Save | None = None,
     weak_order: float | None = None,
     replicates: int = 16,

@@ -277,7 +277,7 @@ def quasi_monte_carlo(
     dt: float,
     replicates: int = 16,
     t0: float = 0.0,
-    solver="euler",
+    solver: str | dfx.AbstractSolver = "euler",
     save: Save | None = None,
     batching: Batching | None = None,
     wrt: Sequence[str] | None = None,
