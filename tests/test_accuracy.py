@@ -115,6 +115,22 @@ def test_quasi_monte_carlo_is_priced_and_reaches_the_target_on_the_ball():
     assert np.all(np.abs(d - np.asarray(exact)) <= 4 * d_se), (d, d_se, exact)
 
 
+def test_quasi_monte_carlo_stops_where_its_own_error_meets_the_target():
+    """Without ``wrt`` quasi-Monte Carlo doubles its points until its standard error, with a margin of one standard
+    error of the 16-scramblings variance estimate, meets the target beside the bias bound at its step
+    (``SE² ≤ ε² − (|C| h^p)²``); its plan's count, at the Monte-Carlo rate, is the most it runs.  K_xx(1) of the
+    ball is then within 3 target RMSEs (Chebyshev: ≥ 89 %), and the work done is what the report says it did."""
+    eps = 0.05 * K_XX
+    r = to_accuracy(BALL.build(), Y0, jax.random.key(21), rmse=eps, **(QMC_ON | QMC_ALONE))
+    plan = next(a for a in r.alternatives if a.name == r.choice)
+    value, se = r.value()
+    bound = r.pilot[0].bias_bound * plan.dt
+    assert se**2 * (1 + math.sqrt(2 / 15)) <= eps**2 - bound**2 and abs(value - K_XX) <= 3 * eps, r.report()
+    steps = round(1.0 / plan.dt)
+    assert r.run_cost.path_steps == r.estimate.cost.path_steps <= plan.n_paths[0] * steps, r.report()
+    assert "points expected" in plan.note and "at most 16 × " in plan.note
+
+
 def test_quasi_monte_carlo_does_not_apply_off_a_power_of_two():
     """``(t1 − t0)/dt = 3`` steps: quasi-Monte Carlo is listed as not applying, with the reason, and another
     alternative reaches the target."""

@@ -119,16 +119,17 @@ def _is_euler(solver) -> bool:
 def price(
     estimators: Sequence[AbstractEstimator], pricing: Pricing, first: Candidate, explore: bool
 ) -> list[AccuracyAlternative]:
-    """Every estimator's plan, those reading the first pilot first; a further pilot (another solver's, or an
+    """Every estimator's plan, those of the first pilot's solver first; a further pilot (another solver's, or an
     estimator's own) only while :func:`to_accuracy`'s exploration rule allows it."""
     alternatives: list[AccuracyAlternative] = []
     first_work = pricing.pilots[first.label].work
     failed: dict[str, str] = {}  # solver label → why its pilot failed
 
-    def on_first(e: AbstractEstimator) -> bool:
-        return e.candidate.label == first.label and not e.own_pilot
+    def rank(e: AbstractEstimator) -> int:
+        """Those reading the first pilot, then those of its solver with pilots of their own, then the others."""
+        return 2 if e.candidate.label != first.label else 1 if e.own_pilot else 0
 
-    for e in sorted(estimators, key=lambda e: not on_first(e)):  # stable: otherwise in the given order
+    for e in sorted(estimators, key=rank):  # stable: otherwise in the given order
         label = e.candidate.label
         reason = e.applies(pricing)
         if reason is not None:

@@ -25,14 +25,14 @@ from .._brownian import BLOCK
 from .._ensemble import Save, SimulationError
 from .._misc import fold_key
 from .._options import Batching, FixedSteps
-from .._simulate import MAX_PATH_INDEX
 from .._system import StochasticSystem
 from ._control_variate import control_variate as linearised_control_variate
-from ._cost import MAX_REFINEMENTS, best_single, multilevel_plan, whole_pieces
+from ._cost import MAX_REFINEMENTS, best_single, bias, multilevel_plan, whole_pieces
 from ._estimate import AbstractEstimate, AbstractStatistic
 from ._extrapolation import extrapolate
 from ._multilevel import multilevel_monte_carlo
-from ._paths import RUN_PATHS, solve_paths
+from ._multilevel_qmc import quasi_monte_carlo_to_variance
+from ._paths import KEY_PATHS, RUN_PATHS, solve_paths
 from ._pilot import Candidate, candidate, run_pilot
 from ._qmc import MAX_DIMENSION, quasi_monte_carlo as randomised_quasi_monte_carlo
 from ._report import AccuracyAlternative, PilotSummary
@@ -353,24 +353,24 @@ class ControlVariate(AbstractEstimator):
         return 2 * super().kept_samples(plan)  # the system and its control
 
 
-QMC_PILOT_REPLICATES = 8
 QMC_REPLICATES = 16
+"""Scramblings of quasi-Monte Carlo, in its pilot and its run (one compiled program for both)."""
 
 
 @dataclasses.dataclass(frozen=True)
 class QuasiMonteCarlo(AbstractEstimator):
-    """Randomised quasi-Monte Carlo (:func:`~nhsde.statistics.quasi_monte_carlo`) with ``solver``: Euler (``p = 1``)
-    or :class:`~nhsde.PlatenWeak2` with Gaussian increments (``p = 2``; ``W`` from the Sobol' points).
+    """Randomised quasi-Monte Carlo (16 scrambled Sobol' point sets through a Brownian bridge) with ``solver``:
+    Euler (``p = 1``) or :class:`~nhsde.PlatenWeak2` with Gaussian increments (``p = 2``; ``W`` from the points).
 
-    Pilot: 8 scramblings of ``n_q`` paths (``pilot_paths/8`` rounded down to a power of two, ≥ 64) at the finest pilot
-    step ``h_b``, run twice (the second, compiled, timed).  Its variance per path-equivalent
-    ``V_q = SE² · 8 n_q`` is assumed to fall only as ``1/N`` beyond the pilot, the Monte-Carlo rate: the
-    predicted work is an upper bound where quasi-Monte Carlo converges faster (``N^{−0.7} … N^{−1}`` on smooth
-    statistics).  The bias is the solver's, from its pilot (the scrambled points give every path the law of a
+    Pilot: ``n_q`` and then ``2 n_q`` points per scrambling (``pilot_paths/16`` rounded down to a power of two,
+    ≥ 64) at the finest pilot step, the second run timed.  Between the two counts its variance falls as
+    ``N^{−β}``, ``β`` clamped to ``[1, 2]`` (1 the Monte-Carlo rate, 2 an error falling as ``1/N``), which predicts
+    the points the target needs; the bias is the solver's, from its pilot (each path has the law of a
     Monte-Carlo path, so the scheme's bias is unchanged).  Work in the solver's plain path-steps: its path-steps
-    times ``κ``, the measured seconds per path-step over those of a compiled plain solve with the same solver,
-    paths and step (its work is counted in the pilot's).  Steps ``h₀ 2^{−k}`` only while ``steps × channels``
-    stays within the Sobol' dimensions; the run takes 16 scramblings of a power of two ≥ 64 paths each."""
+    times ``κ``, the measured seconds per path-step over those of a compiled plain solve with the same solver and
+    step (its work is counted in the pilot's).  The run doubles the points until its own standard error meets
+    the target (:meth:`run`), at most the count the Monte-Carlo rate predicts.  Steps ``h₀ 2^{−k}`` only while
+    ``steps × channels`` stays within the Sobol' dimensions."""
 
     solver: str | dfx.AbstractSolver = "euler"
     weak_order: int | None = None
@@ -382,6 +382,8 @@ class QuasiMonteCarlo(AbstractEstimator):
         return True
 
     def applies(self, pricing: Pricing) -> str | None:
+        if _finest(pricing) < pricing.pilot_levels - 1:
+            return "does not apply: the pilot's finest step exceeds the Sobol' dimensions"
         if pricing.steps0 & (pricing.steps0 - 1):
             return f"does not apply: (t1 − t0)/dt = {pricing.steps0} steps, not a power of two"
         if not pricing.system.noise.continuous:
@@ -390,27 +392,23 @@ class QuasiMonteCarlo(AbstractEstimator):
 
     def predict(self, pricing: Pricing) -> AccuracyAlternative:
         own = pricing.pilot(self.candidate)
-        options: dict[str, Any] = pricing.run_options(keep_paths=False, tangents=False) | dict(solver=self.solver)
         levels, steps0, h0 = pricing.pilot_levels, pricing.steps0, pricing.h0
         h_b, steps_b = h0 / 2 ** (levels - 1), steps0 * 2 ** (levels - 1)
-        r_pilot = QMC_PILOT_REPLICATES  # n_q paths each, the other pilots' paths in all
-        n_q = max(BLOCK, 1 << ((pricing.pilot_paths // r_pilot).bit_length() - 1))
+        n_q = max(BLOCK, 1 << ((pricing.pilot_paths // QMC_REPLICATES).bit_length() - 1))  # points per scrambling
         key = fold_key(pricing.pilot_key, 98)
 
-        def pilot(k):
+        def pilot(k, points):
             start = time.perf_counter()
-            res = randomised_quasi_monte_carlo(
-                pricing.system, pricing.y0, k, n_paths=n_q, replicates=r_pilot, dt=h_b, **options
-            )
+            res = self._points(pricing, k, h_b, variance=0.0, max_points=points)
             jax.block_until_ready((res.mean, res.cov, res.mean_se, res.cov_se))
             return res, time.perf_counter() - start
 
         try:
-            res, _ = pilot(key)
-            _, seconds = pilot(fold_key(key, 1))  # compiled now: time a second run
+            first, _ = pilot(key, n_q)
+            res, seconds = pilot(fold_key(key, 1), 2 * n_q)  # compiled now: timed, and twice the points
         except (ValueError, TypeError, SimulationError) as e:  # paths blowing up: not at this step
             return self.row(f"does not apply: {str(e).splitlines()[0][:200]}")
-        path_steps = r_pilot * n_q * steps_b
+        path_steps = QMC_REPLICATES * 2 * n_q * steps_b
         # κ against plain Monte Carlo with the solver at the same step, in the compiled program its other
         # alternatives run (its pilot compiled it), in either cost mode: with cost='seconds' every alternative's
         # seconds are its path-steps times its pilot's rate, so quasi-Monte Carlo's must be too, via κ
@@ -422,59 +420,111 @@ class QuasiMonteCarlo(AbstractEstimator):
         jax.block_until_ready(
             solve_paths(pricing.system, pricing.y0, fold_key(key, 2), first_path=0, n_paths=n_ref, **reference)
         )
-        euler_rate = (time.perf_counter() - start) / (n_ref * steps_b)
-        kappa = seconds / path_steps / euler_rate if euler_rate > 0 else math.nan
-        work = 2 * path_steps + float(n_ref * steps_b)
-        value, se = (float(x) for x in res.value(pricing.statistic))
-        if not all(math.isfinite(x) for x in (value, se, kappa)):
+        plain_rate = (time.perf_counter() - start) / (n_ref * steps_b)
+        kappa = seconds / path_steps / plain_rate if plain_rate > 0 else math.nan
+        work = 1.5 * path_steps + float(n_ref * steps_b)
+        se_first, se = (float(r.value(pricing.statistic)[1]) for r in (first, res))
+        if not all(math.isfinite(x) for x in (se_first, se, kappa)) or se <= 0:
             return self.row("non-finite pilot", work)
-        max_k = max(-1, math.floor(math.log2(MAX_DIMENSION / (steps0 * pricing.system.noise_dim))))
+        # the variance falls as N^−β between the pilot's two counts: β = 1 at the Monte-Carlo rate, 2 where the
+        # error falls as 1/N (smooth statistics); clamped to [1, 2], a count of points at the Monte-Carlo rate is
+        # the most the run takes (it stops when its own standard error meets the target)
+        rate = min(max(2 * math.log2(se_first / se), 1.0), 2.0)
+        max_k = _finest(pricing)
 
-        def per_replicate(n: float) -> int:  # a power of two ≥ 64
-            return max(BLOCK, 1 << max(0, math.ceil(math.log2(max(n, 1.0) / QMC_REPLICATES))))
+        def per_replicate(n: float, beta: float = 1.0) -> int:  # points at rate β, a power of two ≥ 64
+            points = max(n, 1.0) / QMC_REPLICATES
+            if points > 2 * n_q:
+                points = 2 * n_q * (points / (2 * n_q)) ** (1 / beta)
+            return max(BLOCK, 1 << max(0, math.ceil(math.log2(points))))
 
+        variance = se**2 * QMC_REPLICATES * 2 * n_q  # per path-equivalent, at the Monte-Carlo rate
         cost, k, n_total, _ = best_single(
-            se**2 * r_pilot * n_q,
+            variance,
             own.bias_bound,
             own.order,
             pricing.rmse,
             h0,
             steps0,
             kappa,
-            min(max_k, MAX_REFINEMENTS),
-            lambda n: QMC_REPLICATES * per_replicate(n),
+            max_k,
+            lambda n: QMC_REPLICATES * per_replicate(n, rate),
         )
         if k < 0:
             return self.row("no step reaches the target within the Sobol' dimensions", work)
-        per = n_total // QMC_REPLICATES
-        if per > MAX_PATH_INDEX // 2:
-            note = f"needs {per:.3g} paths per scrambling, more than the {MAX_PATH_INDEX // 2 + 1} a key indexes"
-            return self.row(note, work)
         h = h0 / 2**k
+        budget = (pricing.rmse - bias(own.bias_bound, h, own.order)) * (
+            pricing.rmse + bias(own.bias_bound, h, own.order)
+        )
+        most = per_replicate(variance / budget)  # at the Monte-Carlo rate: the run's cap
+        if most > KEY_PATHS // QMC_REPLICATES:
+            note = f"needs {most:.3g} points per scrambling, more than the {KEY_PATHS // QMC_REPLICATES} a run indexes"
+            return self.row(note, work)
+        expected = n_total // QMC_REPLICATES
         return AccuracyAlternative(
             self.name,
             cost,
             dt=h,
-            n_paths=(QMC_REPLICATES * per,),
+            n_paths=(QMC_REPLICATES * most,),
             bias=own.bias_constant * h**own.order,  # E S(h) − S ≈ C h^p, the solver's
-            note=f"{QMC_REPLICATES} × {per} paths, κ = {kappa:.3g}",
+            note=f"16 × {expected} points expected (variance ∝ N^−{rate:.2g}), at most 16 × {most}, κ = {kappa:.3g}",
             pilot_work=work,
             kappa=kappa,
             estimator=self,
         )
 
-    def run(self, pricing: Pricing, plan: AccuracyAlternative) -> tuple[AbstractEstimate, float]:
-        options: dict[str, Any] = pricing.run_options(keep_paths=False) | dict(solver=self.solver)
-        res = randomised_quasi_monte_carlo(
+    def _points(self, pricing: Pricing, key, h: float, *, variance: float, max_points: int):
+        """Quasi-Monte Carlo at step ``h``, points doubled until the statistic's squared standard error is at most
+        ``variance`` (or ``max_points``), in the program of the driver whose direction numbers cover the finest of
+        ``h`` and the pilot's finest step: the run shares the pilot's program unless it is finer."""
+        m = pricing.system.noise_dim
+        steps_b = pricing.steps0 << (pricing.pilot_levels - 1)
+        return quasi_monte_carlo_to_variance(
             pricing.system,
             pricing.y0,
-            pricing.run_key,
-            n_paths=plan.n_paths[0] // QMC_REPLICATES,
+            key,
+            t0=pricing.t0,
+            t1=pricing.t1,
+            dt=h,
+            solver=self.solver,
+            save=pricing.save,
+            statistic=pricing.statistic,
+            variance=variance,
+            max_points=max_points,
+            dimension=max(steps_b, round((pricing.t1 - pricing.t0) / h)) * m,
             replicates=QMC_REPLICATES,
-            dt=plan.dt,
-            **options,
+            batching=pricing.batching,
         )
+
+    def run(self, pricing: Pricing, plan: AccuracyAlternative) -> tuple[AbstractEstimate, float]:
+        """The points doubled until the standard error meets the target with the bias bound at the step,
+        ``SE² (1 + √(2/(R − 1))) ≤ ε² − (|C| h^p)²`` (a margin of one standard error of the variance estimate);
+        the plan's count, at the Monte-Carlo rate, is the most.  With ``wrt``, the plan's count
+        (:func:`~nhsde.statistics.quasi_monte_carlo`, which gives the derivatives)."""
+        per = plan.n_paths[0] // QMC_REPLICATES
+        if pricing.wrt:
+            options: dict[str, Any] = pricing.run_options(keep_paths=False) | dict(solver=self.solver)
+            res = randomised_quasi_monte_carlo(
+                pricing.system,
+                pricing.y0,
+                pricing.run_key,
+                n_paths=per,
+                replicates=QMC_REPLICATES,
+                dt=plan.dt,
+                **options,
+            )
+            return res, plan.bias
+        own = pricing.pilots[self.candidate.label]
+        budget = pricing.rmse**2 - bias(own.bias_bound, plan.dt, own.order) ** 2
+        # one standard error of the R-replicate variance estimate as a margin: stopping on a low estimate
+        margin = 1 + math.sqrt(2 / (QMC_REPLICATES - 1))
+        res = self._points(pricing, pricing.run_key, plan.dt, variance=budget / margin, max_points=per)
         return res, plan.bias
 
     def kept_samples(self, plan: AccuracyAlternative) -> float:
-        return 0.0  # moments only
+        return sum(plan.n_paths)  # with wrt, every path's values (without, one run's at a time)
+
+
+def _finest(pricing: Pricing) -> int:
+    """The most refinements ``k`` of ``h₀`` whose ``steps × channels`` fit the Sobol' dimensions (−1: none)."""
+    return min(MAX_REFINEMENTS, math.floor(math.log2(MAX_DIMENSION / (pricing.steps0 * pricing.system.noise_dim))))

@@ -46,7 +46,7 @@ from ._multilevel import MultilevelEstimate, bias_estimate
 from ._paths import KEY_PATHS, coupled_paths, coupling_solver, on_device, paths_save, roles_of, safe_sqrt
 from ._qmc import MAX_DIMENSION, SobolDriver, check_solver, combine_replicates, stacked_scramblings
 
-__all__ = ["multilevel_quasi_monte_carlo"]
+__all__ = ["multilevel_quasi_monte_carlo", "quasi_monte_carlo_to_variance"]
 
 RUN_LIMIT = 2**18
 """Most paths solved at once: a larger doubling runs in pieces, reduced into sums as they come."""
@@ -312,33 +312,7 @@ def multilevel_quasi_monte_carlo(
             raise TypeError("rmse=…: choosing the levels needs concrete parameters, not traced ones.")
         moments = _adapt(levels, eps, alpha, top, max_levels, statistic, save.names)
 
-    n_levels = len(moments)
-    samples = [levels.points[level] * replicates for level in range(n_levels)]
-    mean, cov, mean_var, cov_var = (np.sum(np.stack(parts), axis=0) for parts in zip(*moments, strict=True))
-    names = save.names
-    level_means = np.stack([_pick(statistic, names, mm[0], mm[1]) for mm in moments])
-    level_vars = np.stack([_pick(statistic, names, mm[2], mm[3]) * n for mm, n in zip(moments, samples)])
-    level_costs = tuple(levels.cost(level) for level in range(n_levels))
-    fields: dict[str, Any] = dict(
-        ts=np.linspace(t0, t1, mean.shape[0]),
-        mean=mean,
-        cov=cov,
-        mean_se=safe_sqrt(mean_var),
-        cov_se=safe_sqrt(cov_var),
-        n_paths=jax.device_put(np.asarray(sum(samples))),
-        names=names,
-        roles=roles_of(system, names),
-        level_means=level_means,
-        level_variances=level_vars,
-        bias=bias_estimate(level_means, alpha),
-        n_paths_per_level=tuple(samples),
-        level_costs=level_costs,
-        dt=h0,
-        derivatives=None,
-        cost=watch.cost(sum(n * c for n, c in zip(samples, level_costs))),
-        statistic=statistic,
-    )
-    return on_device(MultilevelEstimate(**fields), jnp.asarray(y0).dtype)
+    return _estimate(levels, moments, statistic, alpha, watch)
 
 
 def _adapt(
@@ -374,3 +348,82 @@ def _adapt(
         levels.grow(n_levels, BLOCK)
         moments.append(levels.moments(n_levels))
         n_levels += 1
+
+
+def _estimate(levels: _QmcLevels, moments, statistic: AbstractStatistic, alpha: float, watch: Stopwatch):
+    """The :class:`MultilevelEstimate` of the levels' ``moments`` (their sum telescopes to the finest level)."""
+    n_levels = len(moments)
+    samples = [levels.points[level] * levels.replicates for level in range(n_levels)]
+    mean, cov, mean_var, cov_var = (np.sum(np.stack(parts), axis=0) for parts in zip(*moments, strict=True))
+    names = levels.opts["save"].names
+    level_means = np.stack([_pick(statistic, names, mm[0], mm[1]) for mm in moments])
+    level_vars = np.stack([_pick(statistic, names, mm[2], mm[3]) * n for mm, n in zip(moments, samples)])
+    level_costs = tuple(levels.cost(level) for level in range(n_levels))
+    fields: dict[str, Any] = dict(
+        ts=np.linspace(levels.opts["t0"], levels.opts["t1"], mean.shape[0]),
+        mean=mean,
+        cov=cov,
+        mean_se=safe_sqrt(mean_var),
+        cov_se=safe_sqrt(cov_var),
+        n_paths=jax.device_put(np.asarray(sum(samples))),
+        names=names,
+        roles=roles_of(levels.system, names),
+        level_means=level_means,
+        level_variances=level_vars,
+        bias=bias_estimate(level_means, alpha),
+        n_paths_per_level=tuple(samples),
+        level_costs=level_costs,
+        dt=levels.h0,
+        derivatives=None,
+        cost=watch.cost(sum(n * c for n, c in zip(samples, level_costs))),
+        statistic=statistic,
+    )
+    return on_device(MultilevelEstimate(**fields), jnp.asarray(levels.y0).dtype)
+
+
+def quasi_monte_carlo_to_variance(
+    system: StochasticSystem,
+    y0,
+    key,
+    *,
+    t0: float,
+    t1: float,
+    dt: float,
+    solver,
+    save: Save,
+    statistic: AbstractStatistic,
+    variance: float,
+    max_points: int,
+    dimension: int,
+    replicates: int = 16,
+    batching: Batching | None = None,
+) -> MultilevelEstimate:
+    """Randomised quasi-Monte Carlo at the one step ``dt`` (level 0 of the module's levels): the points per
+    scrambling doubled from 64 until the squared standard error of ``statistic`` is at most ``variance``, or
+    ``max_points`` (a power of two) are done.  Every point count runs in the one compiled program of the driver's
+    ``dimension`` (≥ ``(t1 − t0)/dt × channels``; ``save`` keeps the per-path values); ``bias`` is ``nan`` (one
+    level).  For the estimators' own checked arguments: a quasi-Monte Carlo run that stops where it is accurate
+    enough, unlike a count fixed in advance at the Monte-Carlo rate."""
+    watch = Stopwatch()
+    levels = _QmcLevels(
+        system,
+        y0,
+        key,
+        t0=t0,
+        t1=t1,
+        h0=dt,
+        solver=solver,
+        save=save,
+        replicates=replicates,
+        dimension=dimension,
+        batching=batching,
+    )
+    assert save.names is not None and save.paths
+    points = min(BLOCK, max_points)
+    levels.grow(0, points)
+    moments = levels.moments(0)
+    while points < max_points and float(_pick(statistic, save.names, moments[2], moments[3])) > variance:
+        points *= 2
+        levels.grow(0, points)
+        moments = levels.moments(0)
+    return _estimate(levels, [moments], statistic, 2.0 if isinstance(solver, PlatenWeak2) else 1.0, watch)
