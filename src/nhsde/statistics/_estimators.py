@@ -355,6 +355,9 @@ class ControlVariate(AbstractEstimator):
 
 QMC_REPLICATES = 16
 """Scramblings of quasi-Monte Carlo, in its pilot and its run (one compiled program for both)."""
+QMC_FINER = 2
+"""Halvings of the pilot's finest step that quasi-Monte Carlo's pilot program covers, so that a run at a finer step
+than the pilot's (tighter targets) compiles nothing new."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -475,10 +478,11 @@ class QuasiMonteCarlo(AbstractEstimator):
 
     def _points(self, pricing: Pricing, key, h: float, *, variance: float, max_points: int):
         """Quasi-Monte Carlo at step ``h``, points doubled until the statistic's squared standard error is at most
-        ``variance`` (or ``max_points``), in the program of the driver whose direction numbers cover the finest of
-        ``h`` and the pilot's finest step: the run shares the pilot's program unless it is finer."""
+        ``variance`` (or ``max_points``), in the program of the driver whose direction numbers cover ``h`` and
+        :data:`QMC_FINER` halvings of the pilot's finest step: the run shares the pilot's program unless it is
+        finer still."""
         m = pricing.system.noise_dim
-        steps_b = pricing.steps0 << (pricing.pilot_levels - 1)
+        steps_b = pricing.steps0 << min(pricing.pilot_levels - 1 + QMC_FINER, _finest(pricing))
         return quasi_monte_carlo_to_variance(
             pricing.system,
             pricing.y0,
