@@ -193,8 +193,10 @@ def to_accuracy(
     - ``dt`` (or ``steps=FixedSteps(dt)``): the coarsest step ``h₀`` considered (default
       ``(t1 − t0)/4``, halved until every solver considered is inside its stability limit on the
       system's declared friction, and again while the pilot's paths fail there, down to ``(t1 − t0)/2^10``, their
-      work counted; if the chosen run's paths still fail, every alternative is priced again from half that step,
-      once); pilots run at ``h₀ … h₀ 2^{1−pilot_levels}``, every alternative at ``h₀`` or finer.
+      work counted; if no alternative reaches the target or fits in memory there (a pilot path grown huge
+      without overflowing inflates the bias bound), or the chosen run's paths fail, every alternative is priced
+      again from half that step, once); pilots run at ``h₀ … h₀ 2^{1−pilot_levels}``, every alternative at ``h₀``
+      or finer.
     - ``estimators``: the estimators to choose among (:class:`PlainMonteCarlo`, :class:`Richardson`,
       :class:`Multilevel`, each with its solver and plain or antithetic paths; :class:`ControlVariate`,
       :class:`QuasiMonteCarlo`).  Default: each of the first three for Euler–Maruyama and
@@ -361,10 +363,29 @@ def to_accuracy(
         ]
     key_of = (lambda a: a.seconds if math.isfinite(a.seconds) else math.inf) if timed else (lambda a: a.cost)
     ranked = sorted((a for a in alternatives if a.applies and math.isfinite(key_of(a))), key=key_of)
+    retry = default_step and pricing.steps0 < 2**MAX_PILOT_HALVINGS
+
+    def from_half_step(failure: str, work: float) -> AccuracyResult:
+        """Every alternative priced again from half the step (a pilot path that grew huge without overflowing
+        inflates the bias bound; a rare path blows up in the run), this attempt's work counted."""
+        failed = watch.cost(work)
+        again = to_accuracy(**{**call, "dt": h0 / 2})
+        return dataclasses.replace(
+            again,
+            cost=again.cost + failed,
+            pilot_cost=again.pilot_cost + Cost(failed.path_steps),
+            reason=f"{again.reason}; at dt={h0:g} {failure}, so every alternative was priced again from dt={h0 / 2:g}",
+        )
+
     if not ranked:
-        raise ValueError(f"rmse={rmse:.3g}: no alternative can reach it from dt={h0}; see the pilot:\n{pilots}")
+        if retry:
+            return from_half_step("no alternative reached the target", pilot_work)
+        notes = "\n".join(f"  {a.name}: {a.note or 'no plan'}" for a in alternatives)
+        raise ValueError(f"rmse={rmse:.3g}: no alternative can reach it from dt={h0}:\n{notes}\nthe pilot:\n{pilots}")
     fitting = [a for a in ranked if a.memory <= memory_limit()]
     if not fitting:
+        if retry:
+            return from_half_step(f"no alternative fitted in memory (the cheapest, {ranked[0].name})", pilot_work)
         check_memory(
             f"rmse={rmse:.3g}: the cheapest way, {ranked[0].name},",
             ranked[0].memory,
@@ -385,16 +406,11 @@ def to_accuracy(
     try:
         estimate, bias = chosen.estimator.run(pricing, chosen)
     except SimulationError as e:  # a rare path blew up at a step the pilot's paths survived: from half the step
-        if not (default_step and pricing.steps0 < 2**MAX_PILOT_HALVINGS):
+        if not retry:
             raise
-        failed = watch.cost(pilot_work + chosen.cost / chosen.kappa)  # this attempt (its run's work: the plan)
-        retry = to_accuracy(**{**call, "dt": h0 / 2})
-        return dataclasses.replace(
-            retry,
-            cost=retry.cost + failed,
-            pilot_cost=retry.pilot_cost + Cost(failed.path_steps),
-            reason=f"{retry.reason}; at dt={h0:g} {chosen.name} failed ({str(e).splitlines()[0][:120]}), "
-            f"so every alternative was priced again from dt={h0 / 2:g}",
+        # this attempt's work: the pilots and the run's plan
+        return from_half_step(
+            f"{chosen.name} failed ({str(e).splitlines()[0][:120]})", pilot_work + chosen.cost / chosen.kappa
         )
     run_cost = run_watch.cost(estimate.cost.path_steps)
     return AccuracyResult(

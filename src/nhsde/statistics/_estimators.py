@@ -372,7 +372,8 @@ class QuasiMonteCarlo(AbstractEstimator):
     Monte-Carlo path, so the scheme's bias is unchanged).  Work in the solver's plain path-steps: its path-steps
     times ``κ``, the measured seconds per path-step over those of a compiled plain solve with the same solver and
     step (its work is counted in the pilot's).  The run doubles the points until its own standard error meets
-    the target (:meth:`run`), at most the count the Monte-Carlo rate predicts.  Steps ``h₀ 2^{−k}`` only while
+    the target (:meth:`run`), at most the count the slowest rate either side of the pilot allows (the Monte-Carlo
+    rate above it, ``N^{−2}`` below).  Steps ``h₀ 2^{−k}`` only while
     ``steps × channels`` stays within the Sobol' dimensions."""
 
     solver: str | dfx.AbstractSolver = "euler"
@@ -435,10 +436,11 @@ class QuasiMonteCarlo(AbstractEstimator):
         rate = min(max(2 * math.log2(se_first / se), 1.0), 2.0)
         max_k = _finest(pricing)
 
-        def per_replicate(n: float, beta: float = 1.0) -> int:  # points at rate β, a power of two ≥ 64
-            points = max(n, 1.0) / QMC_REPLICATES
-            if points > 2 * n_q:
-                points = 2 * n_q * (points / (2 * n_q)) ** (1 / beta)
+        def per_replicate(n: float, beta: float | None = None) -> int:
+            """Points per scrambling (a power of two ≥ 64) for ``n`` paths at the Monte-Carlo rate, at rate ``β``
+            from the pilot's ``2 n_q``; ``None``: the most, at the slowest rate either side (1 above, 2 below)."""
+            r = max(n, 1.0) / QMC_REPLICATES / (2 * n_q)
+            points = 2 * n_q * (max(r, math.sqrt(r)) if beta is None else r ** (1 / beta))
             return max(BLOCK, 1 << max(0, math.ceil(math.log2(points))))
 
         variance = se**2 * QMC_REPLICATES * 2 * n_q  # per path-equivalent, at the Monte-Carlo rate
@@ -459,7 +461,7 @@ class QuasiMonteCarlo(AbstractEstimator):
         budget = (pricing.rmse - bias(own.bias_bound, h, own.order)) * (
             pricing.rmse + bias(own.bias_bound, h, own.order)
         )
-        most = per_replicate(variance / budget)  # at the Monte-Carlo rate: the run's cap
+        most = per_replicate(variance / budget)  # the run's cap
         if most > KEY_PATHS // QMC_REPLICATES:
             note = f"needs {most:.3g} points per scrambling, more than the {KEY_PATHS // QMC_REPLICATES} a run indexes"
             return self.row(note, work)
@@ -503,7 +505,7 @@ class QuasiMonteCarlo(AbstractEstimator):
     def run(self, pricing: Pricing, plan: AccuracyAlternative) -> tuple[AbstractEstimate, float]:
         """The points doubled until the standard error meets the target with the bias bound at the step,
         ``SE² (1 + √(2/(R − 1))) ≤ ε² − (|C| h^p)²`` (a margin of one standard error of the variance estimate);
-        the plan's count, at the Monte-Carlo rate, is the most.  With ``wrt``, the plan's count
+        the plan's count, at the slowest rate, is the most.  With ``wrt``, the plan's count
         (:func:`~nhsde.statistics.quasi_monte_carlo`, which gives the derivatives)."""
         per = plan.n_paths[0] // QMC_REPLICATES
         if pricing.wrt:
