@@ -40,6 +40,7 @@ applies to the value, the derivatives come from the same paths).
 
 from __future__ import annotations
 
+import contextvars
 import dataclasses
 import math
 from collections.abc import Sequence
@@ -77,6 +78,9 @@ the first pilot's path-steps: below, compiling and running another pilot costs m
 
 MAX_PILOT_HALVINGS = 10
 """The default coarsest step is halved while the pilot's paths fail, down to ``(t1 − t0)/2^10``."""
+
+_OWN_STEP = contextvars.ContextVar("nhsde_to_accuracy_own_step", default=False)
+"""Set for a retry from half the default coarsest step: that step is still ``to_accuracy``'s own to halve."""
 
 
 # --- the estimators ---------------------------------------------------------------------------------------------
@@ -268,6 +272,7 @@ def to_accuracy(
             e.check(system)
     candidates = list({e.candidate.label: e.candidate for e in estimators}.values())
     default_step = dt is None
+    own_step = default_step or _OWN_STEP.get()  # halved where paths fail: the default or its retry's half
     if default_step:  # the coarsest step: (t1 − t0)/4, halved until every candidate damps the declared friction
         dt = (t1 - t0) / 4
         while not all(stable_step(system, c.solver, dt) for c in candidates) and dt > (t1 - t0) / 2**30:
@@ -326,7 +331,7 @@ def to_accuracy(
             break
         except (SimulationError, ValueError) as e:
             blown_up = isinstance(e, SimulationError) or "non-finite values" in str(e)
-            if not (default_step and blown_up and pricing.steps0 < 2**MAX_PILOT_HALVINGS):
+            if not (own_step and blown_up and pricing.steps0 < 2**MAX_PILOT_HALVINGS):
                 raise
             anti = first_solver.label in pricing.antithetic_pilots
             failed_work += pilot_paths * (2 if anti else 1) * pricing.steps0 * (2**pilot_levels - 1)
@@ -363,13 +368,17 @@ def to_accuracy(
         ]
     key_of = (lambda a: a.seconds if math.isfinite(a.seconds) else math.inf) if timed else (lambda a: a.cost)
     ranked = sorted((a for a in alternatives if a.applies and math.isfinite(key_of(a))), key=key_of)
-    retry = default_step and pricing.steps0 < 2**MAX_PILOT_HALVINGS
+    retry = own_step and pricing.steps0 < 2**MAX_PILOT_HALVINGS
 
     def from_half_step(failure: str, work: float) -> AccuracyResult:
         """Every alternative priced again from half the step (a pilot path that grew huge without overflowing
         inflates the bias bound; a rare path blows up in the run), this attempt's work counted."""
         failed = watch.cost(work)
-        again = to_accuracy(**{**call, "dt": h0 / 2})
+        token = _OWN_STEP.set(True)
+        try:
+            again = to_accuracy(**{**call, "dt": h0 / 2})
+        finally:
+            _OWN_STEP.reset(token)
         return dataclasses.replace(
             again,
             cost=again.cost + failed,
