@@ -69,6 +69,38 @@ def test_ball_covariance_within_its_errors_and_bias_bound():
     np.testing.assert_allclose(float(np.sum(r.level_means)), value, rtol=1e-12)
 
 
+def test_derivatives_in_eps_and_nu_are_those_of_the_finest_euler_chain():
+    """``wrt=('eps', 'nu')`` with fixed points on three levels: the levels telescope to the finest step, so the
+    derivatives of K_xx(1) and K_uu(1) are those of the Euler chain at h = 1/16 (``K ← A K Aᵀ + Q``, by
+    ``jax.jacfwd``), within 4 reported SE (scramblings' spread, levels' variances added); the values are those of
+    the same call without ``wrt``."""
+    args = dict(
+        t1=1.0, dt=0.25, statistic=("cov", "x", "x"), n_points=(256, 128, 64), save=nhsde.Save(names=("x", "u_x"), n=2)
+    )
+    r = multilevel_quasi_monte_carlo(BALL.build(), Y0, jax.random.key(3), wrt=("eps", "nu"), **args)
+    plain = multilevel_quasi_monte_carlo(BALL.build(), Y0, jax.random.key(3), **args)
+    np.testing.assert_allclose(np.asarray(r.cov), np.asarray(plain.cov), rtol=1e-12)
+
+    def chain(theta):
+        dt, n = 1 / 16, 16
+        a = jnp.array([[1.0, dt], [0.0, 1.0 - 2.0 * theta[0] * dt]])
+        q = jnp.array([[0.0, 0.0], [0.0, theta[1] * DELTA**2 * dt]])
+        k = jnp.zeros((2, 2))
+        for _ in range(n):
+            k = a @ k @ a.T + q
+        return jnp.stack([k[0, 0], k[1, 1]])
+
+    exact = np.asarray(jax.jacfwd(chain)(jnp.array([1.0, 1.0])))  # (K_xx, K_uu) × (eps, nu)
+    assert r.derivatives is not None and r.derivatives.wrt == ("eps", "nu")
+    names = r.names
+    ix, iu = names.index("x"), names.index("u_x")
+    d = np.asarray(r.derivatives.d_cov)[:, -1]
+    se = np.asarray(r.derivatives.d_cov_se)[:, -1]
+    got = np.stack([d[:, ix, ix], d[:, iu, iu]])
+    err = np.stack([se[:, ix, ix], se[:, iu, iu]])
+    assert np.all(err > 0) and np.all(np.abs(got - exact) <= 4 * err), (got, exact, err)
+
+
 def test_gaussian_weak2_ball_covariance_within_its_errors_and_bias_bound():
     """PlatenWeak2(increments='gaussian') on every level (ΔW from the points, V pseudo-random): K_xx(1) of the ball
     to 1% RMSE within 4 reported SE plus the reported bias bound (weak order 2) of the exact value."""

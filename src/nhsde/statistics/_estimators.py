@@ -31,10 +31,10 @@ from ._cost import MAX_REFINEMENTS, best_single, bias, multilevel_plan, whole_pi
 from ._estimate import AbstractEstimate, AbstractStatistic
 from ._extrapolation import extrapolate
 from ._multilevel import multilevel_monte_carlo
-from ._multilevel_qmc import quasi_monte_carlo_to_variance
+from ._multilevel_qmc import RUN_LIMIT, quasi_monte_carlo_to_variance
 from ._paths import KEY_PATHS, RUN_PATHS, solve_paths
 from ._pilot import Candidate, candidate, run_pilot
-from ._qmc import MAX_DIMENSION, quasi_monte_carlo as randomised_quasi_monte_carlo
+from ._qmc import MAX_DIMENSION
 from ._report import AccuracyAlternative, PilotSummary
 from ._variance_reduction import check_reflectable
 
@@ -478,7 +478,7 @@ class QuasiMonteCarlo(AbstractEstimator):
             estimator=self,
         )
 
-    def _points(self, pricing: Pricing, key, h: float, *, variance: float, max_points: int):
+    def _points(self, pricing: Pricing, key, h: float, *, variance: float, max_points: int, wrt=()):
         """Quasi-Monte Carlo at step ``h``, points doubled until the statistic's squared standard error is at most
         ``variance`` (or ``max_points``), in the program of the driver whose direction numbers cover ``h`` and
         :data:`QMC_FINER` halvings of the pilot's finest step: the run shares the pilot's program unless it is
@@ -500,35 +500,22 @@ class QuasiMonteCarlo(AbstractEstimator):
             dimension=max(steps_b, round((pricing.t1 - pricing.t0) / h)) * m,
             replicates=QMC_REPLICATES,
             batching=pricing.batching,
+            wrt=wrt,
         )
 
     def run(self, pricing: Pricing, plan: AccuracyAlternative) -> tuple[AbstractEstimate, float]:
         """The points doubled until the standard error meets the target with the bias bound at the step,
         ``SE² (1 + √(2/(R − 1))) ≤ ε² − (|C| h^p)²`` (a margin of one standard error of the variance estimate);
-        the plan's count, at the slowest rate, is the most.  With ``wrt``, the plan's count
-        (:func:`~nhsde.statistics.quasi_monte_carlo`, which gives the derivatives)."""
-        per = plan.n_paths[0] // QMC_REPLICATES
-        if pricing.wrt:
-            options: dict[str, Any] = pricing.run_options(keep_paths=False) | dict(solver=self.solver)
-            res = randomised_quasi_monte_carlo(
-                pricing.system,
-                pricing.y0,
-                pricing.run_key,
-                n_paths=per,
-                replicates=QMC_REPLICATES,
-                dt=plan.dt,
-                **options,
-            )
-            return res, plan.bias
+        the plan's count, at the slowest rate, is the most.  With ``wrt``, the derivatives from the same points."""
         own = pricing.pilots[self.candidate.label]
         budget = pricing.rmse**2 - bias(own.bias_bound, plan.dt, own.order) ** 2
-        # one standard error of the R-replicate variance estimate as a margin: stopping on a low estimate
         margin = 1 + math.sqrt(2 / (QMC_REPLICATES - 1))
-        res = self._points(pricing, pricing.run_key, plan.dt, variance=budget / margin, max_points=per)
+        per = plan.n_paths[0] // QMC_REPLICATES
+        res = self._points(pricing, pricing.run_key, plan.dt, variance=budget / margin, max_points=per, wrt=pricing.wrt)
         return res, plan.bias
 
     def kept_samples(self, plan: AccuracyAlternative) -> float:
-        return sum(plan.n_paths)  # with wrt, every path's values (without, one run's at a time)
+        return min(sum(plan.n_paths), RUN_LIMIT)  # one run's values at a time, reduced into sums
 
 
 def _finest(pricing: Pricing) -> int:

@@ -41,10 +41,11 @@ from .._options import AbstractSteps, Batching
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
 from ._cost import MAX_LEVELS, level_cost
-from ._estimate import AbstractStatistic, Stopwatch, as_statistic
+from ._estimate import AbstractStatistic, Derivatives, Stopwatch, as_statistic
 from ._multilevel import MultilevelEstimate, bias_estimate
 from ._paths import KEY_PATHS, coupled_paths, coupling_solver, on_device, paths_save, roles_of, safe_sqrt
 from ._qmc import MAX_DIMENSION, SobolDriver, check_solver, combine_replicates, stacked_scramblings
+from ._sensitivities import check_wrt
 
 __all__ = ["multilevel_quasi_monte_carlo", "quasi_monte_carlo_to_variance"]
 
@@ -104,14 +105,15 @@ def _pick(statistic: AbstractStatistic, names: tuple[str, ...], mean, cov) -> An
 class _QmcLevels:
     """The levels' runs, reduced per scrambling into sums of the values and of their outer products."""
 
-    def __init__(self, system, y0, key, *, t0, t1, h0, solver, save, replicates, dimension, batching):
-        self.system, self.y0, self.key = system, y0, key
+    def __init__(self, system, y0, key, *, t0, t1, h0, solver, save, replicates, dimension, batching, wrt=()):
+        self.system, self.y0, self.key, self.wrt = system, y0, key, wrt
         self.opts = dict(t0=t0, t1=t1, solver=solver, save=save, batching=batching)
         self.h0, self.replicates, self.dimension = h0, replicates, dimension
         self.steps0 = round((t1 - t0) / h0)
         self.points: list[int] = []  # N_ℓ per scrambling
-        self.sums: list[list[np.ndarray]] = []  # level → per solve (R, n, k)
-        self.squares: list[list[np.ndarray]] = []  # level → per solve (R, n, k, k)
+        # level → per solve: sums of the values (R, n, k) and of their outer products (R, n, k, k); with wrt, of
+        # their tangents (p, R, n, k) and of the tangents of the outer products (p, R, n, k, k)
+        self.sums: list[list[list[np.ndarray]]] = []
         self.drivers: list[_LevelSobol] = []
 
     def cost(self, level: int) -> float:
@@ -130,7 +132,6 @@ class _QmcLevels:
         while len(self.points) <= level:
             self.points.append(0)
             self.sums.append([])
-            self.squares.append([])
         r = self.replicates
         if n_points * r > KEY_PATHS:
             raise ValueError(
@@ -143,7 +144,7 @@ class _QmcLevels:
         first = self.points[level] * r
         while first < n_points * r:
             size = min(n_points * r - first, RUN_LIMIT)
-            paths, _ = coupled_paths(
+            paths, tangents = coupled_paths(
                 driven,
                 self.y0,
                 fold_key(self.key, level),
@@ -152,35 +153,50 @@ class _QmcLevels:
                 n_paths=size,
                 first_path=first,
                 antithetic=False,
+                wrt=self.wrt,
                 **self.opts,
             )
             for a, z in enumerate(paths):
-                z = np.asarray(z, np.float64)
                 # path (b·R + r)·BLOCK + lane is point b·BLOCK + lane of scrambling r
-                z = z.reshape(-1, r, BLOCK, *z.shape[1:])
-                total = z.sum(axis=(0, 2))
-                square = np.einsum("brlni,brlnj->rnij", z, z)
+                z = np.asarray(z, np.float64).reshape(-1, r, BLOCK, *z.shape[1:])
+                sums = [z.sum(axis=(0, 2)), np.einsum("brlni,brlnj->rnij", z, z)]
+                if self.wrt:
+                    t = np.asarray(tangents[a], np.float64).reshape(len(self.wrt), *z.shape)
+                    tz = np.einsum("pbrlni,brlnj->prnij", t, z)
+                    sums += [t.sum(axis=(1, 3)), tz + np.swapaxes(tz, -1, -2)]
                 if a < len(self.sums[level]):
-                    self.sums[level][a] += total
-                    self.squares[level][a] += square
+                    for total, part in zip(self.sums[level][a], sums, strict=True):
+                        total += part
                 else:
-                    self.sums[level].append(total)
-                    self.squares[level].append(square)
+                    self.sums[level].append(sums)
             first += size
         self.points[level] = n_points
 
     def moments(self, level: int):
-        """``(mean, cov, mean_var, cov_var)`` of the level's term (the variances those of the estimates)."""
+        """``(mean, cov, mean_var, cov_var)`` of the level's term (the variances those of the estimates); with
+        ``wrt``, then ``(d_mean, d_cov, d_mean_var, d_cov_var)``, the derivatives by the jvp of
+        :func:`._qmc.combine_replicates` and their variances from the scramblings' spread."""
         n, r = self.points[level], self.replicates
         weights = (1.0, -1.0) if level else (1.0,)
-        means = [s / n for s in self.sums[level]]
-        seconds = [s / n for s in self.squares[level]]
+        per_solve = [[total / n for total in sums] for sums in self.sums[level]]
+        means, seconds = ([p[i] for p in per_solve] for i in (0, 1))
         per_mean = sum(w * m for w, m in zip(weights, means))
         per_cov = sum(w * (s - np.einsum("rni,rnj->rnij", m, m)) for w, m, s in zip(weights, means, seconds))
         combined = [combine_replicates(_host(m), _host(s)) for m, s in zip(means, seconds)]
         mean = sum(w * c[0] for w, c in zip(weights, combined))
         cov = sum(w * c[1] for w, c in zip(weights, combined))
-        return mean, cov, np.var(per_mean, axis=0, ddof=1) / r, np.var(per_cov, axis=0, ddof=1) / r
+        out = [mean, cov, np.var(per_mean, axis=0, ddof=1) / r, np.var(per_cov, axis=0, ddof=1) / r]
+        if self.wrt:
+            d_mean = d_cov = d_per_mean = d_per_cov = 0.0
+            for w, (m, s, dm, ds) in zip(weights, per_solve):
+                dm_c, dc_c = jax.vmap(lambda a, b, m=m, s=s: jax.jvp(combine_replicates, (m, s), (a, b))[1])(dm, ds)
+                d_outer = np.einsum("prni,rnj->prnij", dm, m)
+                d_mean = d_mean + w * np.asarray(dm_c)
+                d_cov = d_cov + w * np.asarray(dc_c)
+                d_per_mean = d_per_mean + w * dm
+                d_per_cov = d_per_cov + w * (ds - d_outer - np.swapaxes(d_outer, -1, -2))
+            out += [d_mean, d_cov, np.var(d_per_mean, axis=1, ddof=1) / r, np.var(d_per_cov, axis=1, ddof=1) / r]
+        return tuple(out)
 
 
 def multilevel_quasi_monte_carlo(
@@ -200,6 +216,7 @@ def multilevel_quasi_monte_carlo(
     replicates: int = 16,
     max_levels: int = MAX_LEVELS,
     batching: Batching | None = None,
+    wrt: Sequence[str] | None = None,
 ) -> MultilevelEstimate:
     """Multilevel randomised quasi-Monte Carlo estimate of the saved means and covariances (module).
 
@@ -209,6 +226,9 @@ def multilevel_quasi_monte_carlo(
     - ``rmse``: the requested root-mean-square error of ``statistic`` (levels and points chosen adaptively), or
       ``n_points``: a fixed ``(N_0, …, N_L)`` points per scrambling, powers of two ≥ 64.
     - ``replicates``: ``R``, the independent scramblings per level (≥ 2; the variances come from their spread).
+    - ``wrt``: names of scalar parameters: ``derivatives`` of the means and covariances in them, from the points'
+      forward-mode tangents reduced per scrambling like the values (each level's term by the jvp of its
+      replicate combination), with standard errors from the scramblings' spread, the levels' variances added.
 
     Only Wiener drivers, and solvers that need Brownian increments only (Euler, Milstein, Heun, …) or
     ``nhsde.PlatenWeak2(increments='gaussian')``; levels stop
@@ -243,6 +263,7 @@ def multilevel_quasi_monte_carlo(
             "driver (nhsde.noise.Wiener)."
         )
     check_solver(coupling_solver(solver), system)
+    wrt = () if wrt is None else check_wrt(system, wrt)
     m = system.noise_dim
     if steps0 * m > MAX_DIMENSION:
         raise ValueError(
@@ -301,6 +322,7 @@ def multilevel_quasi_monte_carlo(
         replicates=replicates,
         dimension=dimension,
         batching=batching,
+        wrt=wrt,
     )
     if n_points is not None:
         for level, n in enumerate(counts):
@@ -354,7 +376,11 @@ def _estimate(levels: _QmcLevels, moments, statistic: AbstractStatistic, alpha: 
     """The :class:`MultilevelEstimate` of the levels' ``moments`` (their sum telescopes to the finest level)."""
     n_levels = len(moments)
     samples = [levels.points[level] * levels.replicates for level in range(n_levels)]
-    mean, cov, mean_var, cov_var = (np.sum(np.stack(parts), axis=0) for parts in zip(*moments, strict=True))
+    mean, cov, mean_var, cov_var, *tangents = (np.sum(np.stack(parts), axis=0) for parts in zip(*moments, strict=True))
+    derivatives = None
+    if tangents:  # the levels are independent: their derivatives' variances add
+        d_mean, d_cov, d_mean_var, d_cov_var = tangents
+        derivatives = Derivatives(d_mean, d_cov, safe_sqrt(d_mean_var), safe_sqrt(d_cov_var), levels.wrt)
     names = levels.opts["save"].names
     level_means = np.stack([_pick(statistic, names, mm[0], mm[1]) for mm in moments])
     level_vars = np.stack([_pick(statistic, names, mm[2], mm[3]) * n for mm, n in zip(moments, samples)])
@@ -374,7 +400,7 @@ def _estimate(levels: _QmcLevels, moments, statistic: AbstractStatistic, alpha: 
         n_paths_per_level=tuple(samples),
         level_costs=level_costs,
         dt=levels.h0,
-        derivatives=None,
+        derivatives=derivatives,
         cost=watch.cost(sum(n * c for n, c in zip(samples, level_costs))),
         statistic=statistic,
     )
@@ -397,13 +423,15 @@ def quasi_monte_carlo_to_variance(
     dimension: int,
     replicates: int = 16,
     batching: Batching | None = None,
+    wrt: tuple[str, ...] = (),
 ) -> MultilevelEstimate:
     """Randomised quasi-Monte Carlo at the one step ``dt`` (level 0 of the module's levels): the points per
     scrambling doubled from 64 until the squared standard error of ``statistic`` is at most ``variance``, or
     ``max_points`` (a power of two) are done.  Every point count runs in the one compiled program of the driver's
     ``dimension`` (≥ ``(t1 − t0)/dt × channels``; ``save`` keeps the per-path values); ``bias`` is ``nan`` (one
-    level).  For the estimators' own checked arguments: a quasi-Monte Carlo run that stops where it is accurate
-    enough, unlike a count fixed in advance at the Monte-Carlo rate."""
+    level); with parameter names ``wrt``, ``derivatives`` from the points' tangents.  For the estimators' own checked
+    arguments: a quasi-Monte Carlo run that stops where it is accurate enough, unlike a count fixed in advance at
+    the Monte-Carlo rate."""
     watch = Stopwatch()
     levels = _QmcLevels(
         system,
@@ -417,6 +445,7 @@ def quasi_monte_carlo_to_variance(
         replicates=replicates,
         dimension=dimension,
         batching=batching,
+        wrt=wrt,
     )
     assert save.names is not None and save.paths
     points = min(BLOCK, max_points)

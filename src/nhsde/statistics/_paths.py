@@ -116,7 +116,8 @@ def paired_sensitivities(
 
 
 def paths_save(save: Save | None, n_steps: int, names: tuple[str, ...]) -> Save:
-    """``save`` with per-path values kept and its number of times fixed on a grid of ``n_steps`` (the coarsest)."""
+    """``save`` with per-path values kept, its names ``names`` where it names none, and its number of times fixed on
+    a grid of ``n_steps`` (the coarsest)."""
     save = Save(names=names, n=2) if save is None else save
     if not isinstance(save, Save):
         raise TypeError(f"save={save!r}; expected nhsde.Save(...).")
@@ -125,7 +126,7 @@ def paths_save(save: Save | None, n_steps: int, names: tuple[str, ...]) -> Save:
         n = max(k for k in range(2, 12) if n_steps % (k - 1) == 0)
     elif n_steps % (n - 1):
         raise ValueError(f"save.n={n}: n − 1 must divide the {n_steps} steps of the coarsest step.")
-    return Save(names=save.names, n=n, paths=True)
+    return Save(names=names if save.names is None else save.names, n=n, paths=True)
 
 
 def coupling_solver(solver):
