@@ -2,7 +2,8 @@
 
 :func:`to_accuracy` runs a short pilot for each candidate solver (Euler–Maruyama,
 weak order ``p = 1``; :class:`~nhsde.PlatenWeak2` with Gaussian increments,
-``p = 2``): ``m`` solves at ``h_ℓ = h₀ 2^{−ℓ}``, ``ℓ < m``, on one Brownian path
+``p = 2``; Heun's method, ``p = 1``, for systems in Stratonovich form with
+state-dependent noise): ``m`` solves at ``h_ℓ = h₀ 2^{−ℓ}``, ``ℓ < m``, on one Brownian path
 (and on its reflection, for antithetic paths).  From the per-path values it
 reads the per-sample variance ``V`` of the statistic, the level variances
 ``V_ℓ`` of the multilevel differences, and the weak-error model
@@ -98,7 +99,7 @@ def default_estimators(
         solvers = [(solver, weak_order)]
     else:
         solvers = []
-        for s in ("euler", PlatenWeak2(increments="gaussian")):
+        for s in native_solvers(system) + ("euler", PlatenWeak2(increments="gaussian")):
             try:
                 candidate(s).check(system)
             except ValueError as e:
@@ -114,6 +115,14 @@ def default_estimators(
         estimators.append(ControlVariate())
     estimators += [QuasiMonteCarlo(s, w) for s, w in solvers]
     return estimators, notes
+
+
+def native_solvers(system: StochasticSystem) -> tuple[str, ...]:
+    """Default solvers beyond Euler and weak order 2 for ``system``: Heun's method (``'heun2'``, weak order 1) where
+    the system is written in Stratonovich form with state-dependent noise, so that Euler's and weak order 2's
+    steps convert it to Itô form (a Jacobian of the diffusion per step; on the body on the vibrating plane a
+    weak-order-2 path-step takes 2–3 times a Heun one, ``benchmarks/RESULTS.md``) and Heun's does not."""
+    return ("heun2",) if system.interpretation == "stratonovich" and not system.additive_noise else ()
 
 
 def _is_euler(solver) -> bool:
@@ -204,8 +213,9 @@ def to_accuracy(
     - ``estimators``: the estimators to choose among (:class:`PlainMonteCarlo`, :class:`Richardson`,
       :class:`Multilevel`, each with its solver and plain or antithetic paths; :class:`ControlVariate`,
       :class:`QuasiMonteCarlo`).  Default: each of the first three for Euler–Maruyama and
-      ``PlatenWeak2(increments='gaussian')`` (those the system's driver allows), plain and antithetic (Wiener
-      drivers), then the control variate (Euler) and quasi-Monte Carlo with each solver; ``solver``,
+      ``PlatenWeak2(increments='gaussian')`` (those the system's driver allows), and Heun's method (``'heun2'``)
+      where the system is in Stratonovich form with state-dependent noise (:func:`native_solvers`), plain and
+      antithetic (Wiener drivers), then the control variate (Euler) and quasi-Monte Carlo with each solver; ``solver``,
       ``weak_order`` and ``antithetic`` narrow that default set:
     - ``solver``: consider only this one (``PlatenWeak2`` needs ``increments='gaussian'``),
       of weak order ``weak_order`` (default 2 for ``PlatenWeak2``, else 1).
@@ -221,8 +231,9 @@ def to_accuracy(
       (8 scramblings of ``pilot_paths/8`` paths rounded down to a power of two, run twice to time it) predicts its
       work from its variance at the Monte-Carlo rate ``N^{−1/2}``, an upper bound where it converges faster; its
       work is counted in its solver's plain path-steps (times the measured cost ratio ``κ``, in the report's note).
-    - ``explore``: price every alternative.  By default (``False``) the first solver's pilot (the highest weak
-      order among the estimators' solvers) prices the estimators of that solver, and a further pilot (another
+    - ``explore``: price every alternative.  By default (``False``) the first solver's pilot (among the estimators'
+      solvers that step the system in its own calculus, where one does, the highest weak order) prices the
+      estimators of that solver, and a further pilot (another
       solver's, the control variate's, quasi-Monte Carlo's) runs only when the best run so far is predicted to take
       more than :data:`EXPLORE_ABOVE` times the first pilot's path-steps (the rule counts work, not seconds, so a key
       gives the same choice on any machine and with any cache): a loose target is answered after one compiled
@@ -322,8 +333,9 @@ def to_accuracy(
         pilot_keys={c.label: i for i, c in enumerate(candidates)},
         antithetic_pilots=frozenset(e.candidate.label for e in estimators if e.antithetic),
     )
-    # the highest weak order first: the solver most alternatives choose
-    first_solver = max(candidates, key=lambda c: c.order)
+    # the first pilot: a solver that steps the system in its own calculus (no conversion each step), then the
+    # highest weak order: the solver most alternatives choose
+    first_solver = max(candidates, key=lambda c: (not c.converts(system), c.order))
     failed_work = 0.0  # the default coarsest step is halved while the pilot's paths fail there (a nonlinear blow-up)
     while True:
         try:

@@ -48,6 +48,12 @@ class Candidate:
         """Raise ``ValueError`` naming ``solver=`` where the system's driver does not allow it."""
         solver_needs(self.solver, system)
 
+    def converts(self, system: StochasticSystem) -> bool:
+        """Whether each step converts ``system`` to the solver's calculus: its drift corrected by
+        ``½ Σ_j (∂b_j/∂Z) b_j`` (S0 §2, Remark), a Jacobian of the diffusion per step; never for additive noise."""
+        needs = solver_needs(self.solver, system)
+        return not system.additive_noise and needs.interpretation not in ("any", system.interpretation)
+
 
 def candidate(solver: str | dfx.AbstractSolver, weak_order: int | None = None) -> Candidate:
     """``solver`` as a :class:`Candidate`: weak order ``weak_order`` (default 2 for :class:`~nhsde.PlatenWeak2`, else
