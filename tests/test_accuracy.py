@@ -133,6 +133,20 @@ def test_quasi_monte_carlo_stops_where_its_own_error_meets_the_target():
     assert "points expected" in plan.note and "at most 16 × " in plan.note
 
 
+def test_antithetic_quasi_monte_carlo_counts_both_solves_and_reaches_the_target():
+    """``QuasiMonteCarlo(antithetic=True)``: each point with its reflection, priced at twice the path-steps per
+    point; K_xx(1) of the ball within 3 target RMSEs (Chebyshev) and the work done two solves per point."""
+    eps = 0.05 * K_XX
+    estimators = (QuasiMonteCarlo(antithetic=True),)
+    r = to_accuracy(BALL.build(), Y0, jax.random.key(22), rmse=eps, **(QMC_ON | dict(estimators=estimators)))
+    plan = next(a for a in r.alternatives if a.name == r.choice)
+    assert r.choice == "quasi-Monte Carlo, euler, antithetic", r.report()
+    value, se = r.value()
+    assert abs(value - K_XX) <= 3 * eps and 0 < se <= eps, r.report()
+    steps = round(1.0 / plan.dt)
+    assert r.run_cost.path_steps == 2 * int(r.estimate.n_paths) * steps, r.report()
+
+
 def test_a_pilot_grown_huge_without_overflowing_prices_everything_again_from_half_the_step():
     """Chaplygin's ball (stationary E[H] = 3ν/(8ε)), Euler from its default coarsest step: at key 1003 the pilot's
     paths stay finite at h₀ = 1 but so large that no alternative reaches the target; from half the step (halved

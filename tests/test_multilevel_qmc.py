@@ -173,3 +173,16 @@ def test_refuses_what_it_cannot_do_naming_the_argument():
         multilevel_quasi_monte_carlo(system, Y0, key, dt=0.25, n_points=(64,), **base)
     with pytest.raises(ValueError, match="statistic="):
         multilevel_quasi_monte_carlo(system, Y0, key, dt=0.25, t1=1.0, statistic=("median", "x"), rmse=1e-2)
+
+
+def test_antithetic_points_on_every_level_make_odd_means_exact_and_the_covariance_within_its_errors():
+    """Antithetic pairs inside multilevel QMC: on the ball from rest ``x(−W) = −x(W)`` on every level, so the
+    mean of x is exact; K_xx(1) (S0 (3.1)) is within 4 reported SE plus the bias bound, at twice the level costs."""
+    exact = float(ball_covariances(jnp.float64(1.0), 1.0, 1.0, DELTA)[0])
+    eps = 2e-2 * exact
+    args = dict(t1=1.0, dt=0.25, save=nhsde.Save(names=("x",)), antithetic=True)
+    r = multilevel_quasi_monte_carlo(BALL.build(), Y0, jax.random.key(8), statistic=("cov", "x", "x"), rmse=eps, **args)
+    value, se = (float(x) for x in r.value())
+    assert abs(value - exact) <= 4 * se + float(r.bias), (value, exact, se, float(r.bias))
+    assert r.level_costs[:2] == (8.0, 24.0), r.level_costs
+    assert abs(float(r.mean[-1, 0])) < 1e-12

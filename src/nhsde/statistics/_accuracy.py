@@ -215,7 +215,8 @@ def to_accuracy(
       :class:`QuasiMonteCarlo`).  Default: each of the first three for Euler–Maruyama and
       ``PlatenWeak2(increments='gaussian')`` (those the system's driver allows), and Heun's method (``'heun2'``)
       where the system is in Stratonovich form with state-dependent noise (:func:`native_solvers`), plain and
-      antithetic (Wiener drivers), then the control variate (Euler) and quasi-Monte Carlo with each solver; ``solver``,
+      antithetic (Wiener drivers), then the control variate (Euler) and quasi-Monte Carlo with each solver (its
+      antithetic form only when given: at equal work it gains only on statistics odd in ``W``); ``solver``,
       ``weak_order`` and ``antithetic`` narrow that default set:
     - ``solver``: consider only this one (``PlatenWeak2`` needs ``increments='gaussian'``),
       of weak order ``weak_order`` (default 2 for ``PlatenWeak2``, else 1).

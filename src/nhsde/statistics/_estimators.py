@@ -363,7 +363,9 @@ than the pilot's (tighter targets) compiles nothing new."""
 @dataclasses.dataclass(frozen=True)
 class QuasiMonteCarlo(AbstractEstimator):
     """Randomised quasi-Monte Carlo (16 scrambled Sobol' point sets through a Brownian bridge) with ``solver``:
-    Euler (``p = 1``) or :class:`~nhsde.PlatenWeak2` with Gaussian increments (``p = 2``; ``W`` from the points).
+    Euler (``p = 1``) or :class:`~nhsde.PlatenWeak2` with Gaussian increments (``p = 2``; ``W`` from the points);
+    ``antithetic``: each point also solved with its increments reflected, its value the pair's average (work
+    doubled).
 
     Pilot: ``n_q`` and then ``2 n_q`` points per scrambling (``pilot_paths/16`` rounded down to a power of two,
     ≥ 64) at the finest pilot step, the second run timed.  Between the two counts its variance falls as
@@ -378,7 +380,7 @@ class QuasiMonteCarlo(AbstractEstimator):
 
     solver: str | dfx.AbstractSolver = "euler"
     weak_order: int | None = None
-    antithetic: bool = dataclasses.field(default=False, init=False, repr=False)
+    antithetic: bool = False
     method: str = dataclasses.field(default="quasi-Monte Carlo", init=False, repr=False)
 
     @property
@@ -412,7 +414,8 @@ class QuasiMonteCarlo(AbstractEstimator):
             res, seconds = pilot(fold_key(key, 1), 2 * n_q)  # compiled now: timed, and twice the points
         except (ValueError, TypeError, SimulationError) as e:  # paths blowing up: not at this step
             return self.row(f"does not apply: {str(e).splitlines()[0][:200]}")
-        path_steps = QMC_REPLICATES * 2 * n_q * steps_b
+        pairs = 2 if self.antithetic else 1  # solves per point
+        path_steps = pairs * QMC_REPLICATES * 2 * n_q * steps_b
         # κ against plain Monte Carlo with the solver at the same step, in the compiled program its other
         # alternatives run (its pilot compiled it), in either cost mode: with cost='seconds' every alternative's
         # seconds are its path-steps times its pilot's rate, so quasi-Monte Carlo's must be too, via κ
@@ -443,7 +446,7 @@ class QuasiMonteCarlo(AbstractEstimator):
             points = 2 * n_q * (max(r, math.sqrt(r)) if beta is None else r ** (1 / beta))
             return max(BLOCK, 1 << max(0, math.ceil(math.log2(points))))
 
-        variance = se**2 * QMC_REPLICATES * 2 * n_q  # per path-equivalent, at the Monte-Carlo rate
+        variance = se**2 * QMC_REPLICATES * 2 * n_q  # per point, at the Monte-Carlo rate
         cost, k, n_total, _ = best_single(
             variance,
             own.bias_bound,
@@ -451,7 +454,7 @@ class QuasiMonteCarlo(AbstractEstimator):
             pricing.rmse,
             h0,
             steps0,
-            kappa,
+            pairs * kappa,
             max_k,
             lambda n: QMC_REPLICATES * per_replicate(n, rate),
         )
@@ -501,6 +504,7 @@ class QuasiMonteCarlo(AbstractEstimator):
             replicates=QMC_REPLICATES,
             batching=pricing.batching,
             wrt=wrt,
+            antithetic=self.antithetic,
         )
 
     def run(self, pricing: Pricing, plan: AccuracyAlternative) -> tuple[AbstractEstimate, float]:
@@ -515,7 +519,8 @@ class QuasiMonteCarlo(AbstractEstimator):
         return res, plan.bias
 
     def kept_samples(self, plan: AccuracyAlternative) -> float:
-        return min(sum(plan.n_paths), RUN_LIMIT)  # one run's values at a time, reduced into sums
+        pairs = 2 if self.antithetic else 1
+        return pairs * min(sum(plan.n_paths), RUN_LIMIT)  # one run's values at a time, reduced into sums
 
 
 def _finest(pricing: Pricing) -> int:

@@ -103,10 +103,14 @@ def _pick(statistic: AbstractStatistic, names: tuple[str, ...], mean, cov) -> An
 
 
 class _QmcLevels:
-    """The levels' runs, reduced per scrambling into sums of the values and of their outer products."""
+    """The levels' runs, reduced per scrambling into sums of the values and of their outer products; with
+    ``antithetic``, each point's value is the average over its path and the reflected one (``W → −W``, the
+    point set ``1 − u``), and its outer product the average of the two paths' (so covariances stay unbiased)."""
 
-    def __init__(self, system, y0, key, *, t0, t1, h0, solver, save, replicates, dimension, batching, wrt=()):
-        self.system, self.y0, self.key, self.wrt = system, y0, key, wrt
+    def __init__(
+        self, system, y0, key, *, t0, t1, h0, solver, save, replicates, dimension, batching, wrt=(), antithetic=False
+    ):
+        self.system, self.y0, self.key, self.wrt, self.antithetic = system, y0, key, wrt, antithetic
         self.opts = dict(t0=t0, t1=t1, solver=solver, save=save, batching=batching)
         self.h0, self.replicates, self.dimension = h0, replicates, dimension
         self.steps0 = round((t1 - t0) / h0)
@@ -117,7 +121,7 @@ class _QmcLevels:
         self.drivers: list[_LevelSobol] = []
 
     def cost(self, level: int) -> float:
-        return level_cost(self.steps0, level, False)
+        return level_cost(self.steps0, level, self.antithetic)
 
     def driver(self, level: int) -> _LevelSobol:
         while len(self.drivers) <= level:
@@ -152,18 +156,23 @@ class _QmcLevels:
                 brownian_dt=h,
                 n_paths=size,
                 first_path=first,
-                antithetic=False,
+                antithetic=self.antithetic,
                 wrt=self.wrt,
                 **self.opts,
             )
-            for a, z in enumerate(paths):
-                # path (b·R + r)·BLOCK + lane is point b·BLOCK + lane of scrambling r
-                z = np.asarray(z, np.float64).reshape(-1, r, BLOCK, *z.shape[1:])
-                sums = [z.sum(axis=(0, 2)), np.einsum("brlni,brlnj->rnij", z, z)]
-                if self.wrt:
-                    t = np.asarray(tangents[a], np.float64).reshape(len(self.wrt), *z.shape)
-                    tz = np.einsum("pbrlni,brlnj->prnij", t, z)
-                    sums += [t.sum(axis=(1, 3)), tz + np.swapaxes(tz, -1, -2)]
+            pairs = 2 if self.antithetic else 1  # a point's value: the average over it and its reflection
+            for a in range(len(dts)):
+                sums = None
+                for i in range(a, len(paths), len(dts)):  # the solve at dts[a], then its reflection's
+                    # path (b·R + r)·BLOCK + lane is point b·BLOCK + lane of scrambling r
+                    z = np.asarray(paths[i], np.float64).reshape(-1, r, BLOCK, *paths[i].shape[1:])
+                    parts = [z.sum(axis=(0, 2)) / pairs, np.einsum("brlni,brlnj->rnij", z, z) / pairs]
+                    if self.wrt:
+                        t = np.asarray(tangents[i], np.float64).reshape(len(self.wrt), *z.shape)
+                        tz = np.einsum("pbrlni,brlnj->prnij", t, z) / pairs
+                        parts += [t.sum(axis=(1, 3)) / pairs, tz + np.swapaxes(tz, -1, -2)]
+                    sums = parts if sums is None else [x + y for x, y in zip(sums, parts, strict=True)]
+                assert sums is not None
                 if a < len(self.sums[level]):
                     for total, part in zip(self.sums[level][a], sums, strict=True):
                         total += part
@@ -215,6 +224,7 @@ def multilevel_quasi_monte_carlo(
     weak_order: float | None = None,
     replicates: int = 16,
     max_levels: int = MAX_LEVELS,
+    antithetic: bool = False,
     batching: Batching | None = None,
     wrt: Sequence[str] | None = None,
 ) -> MultilevelEstimate:
@@ -226,6 +236,8 @@ def multilevel_quasi_monte_carlo(
     - ``rmse``: the requested root-mean-square error of ``statistic`` (levels and points chosen adaptively), or
       ``n_points``: a fixed ``(N_0, …, N_L)`` points per scrambling, powers of two ≥ 64.
     - ``replicates``: ``R``, the independent scramblings per level (≥ 2; the variances come from their spread).
+    - ``antithetic``: each point also solved with its increments reflected (``W → −W``), its value the pair's
+      average (:mod:`._variance_reduction`; twice the path-steps, ``level_costs`` doubled).
     - ``wrt``: names of scalar parameters: ``derivatives`` of the means and covariances in them, from the points'
       forward-mode tangents reduced per scrambling like the values (each level's term by the jvp of its
       replicate combination), with standard errors from the scramblings' spread, the levels' variances added.
@@ -273,6 +285,8 @@ def multilevel_quasi_monte_carlo(
     replicates = check_number("replicates", replicates, integer=True)
     if replicates < 2:
         raise ValueError(f"replicates={replicates}; the level variances need ≥ 2 independent scramblings.")
+    if not isinstance(antithetic, bool):
+        raise TypeError(f"antithetic={antithetic!r}; expected True or False.")
     if weak_order is None:
         alpha = 2 if isinstance(solver, PlatenWeak2) else 1
     else:
@@ -323,6 +337,7 @@ def multilevel_quasi_monte_carlo(
         dimension=dimension,
         batching=batching,
         wrt=wrt,
+        antithetic=antithetic,
     )
     if n_points is not None:
         for level, n in enumerate(counts):
@@ -424,12 +439,14 @@ def quasi_monte_carlo_to_variance(
     replicates: int = 16,
     batching: Batching | None = None,
     wrt: tuple[str, ...] = (),
+    antithetic: bool = False,
 ) -> MultilevelEstimate:
     """Randomised quasi-Monte Carlo at the one step ``dt`` (level 0 of the module's levels): the points per
     scrambling doubled from 64 until the squared standard error of ``statistic`` is at most ``variance``, or
     ``max_points`` (a power of two) are done.  Every point count runs in the one compiled program of the driver's
     ``dimension`` (≥ ``(t1 − t0)/dt × channels``; ``save`` keeps the per-path values); ``bias`` is ``nan`` (one
-    level); with parameter names ``wrt``, ``derivatives`` from the points' tangents.  For the estimators' own checked
+    level); with parameter names ``wrt``, ``derivatives`` from the points' tangents; ``antithetic``: each point with
+    its reflection (as :func:`multilevel_quasi_monte_carlo`).  For the estimators' own checked
     arguments: a quasi-Monte Carlo run that stops where it is accurate enough, unlike a count fixed in advance at
     the Monte-Carlo rate."""
     watch = Stopwatch()
@@ -446,6 +463,7 @@ def quasi_monte_carlo_to_variance(
         dimension=dimension,
         batching=batching,
         wrt=wrt,
+        antithetic=antithetic,
     )
     assert save.names is not None and save.paths
     points = min(BLOCK, max_points)

@@ -51,6 +51,7 @@ from .._weak import GaussianWeakIncrement
 from ._estimate import AbstractEstimate, AbstractStatistic, Cost, Derivatives, Stopwatch, Values
 from ._paths import array_module, on_device, roles_of, with_tangents
 from ._sensitivities import check_wrt
+from ._variance_reduction import antithetic as reflected
 
 __all__ = ["QuasiMonteCarloEstimate", "quasi_monte_carlo", "scrambled_sobol", "sobol_points"]
 
@@ -279,6 +280,7 @@ def quasi_monte_carlo(
     t0: float = 0.0,
     solver: str | dfx.AbstractSolver = "euler",
     save: Save | None = None,
+    antithetic: bool = False,
     batching: Batching | None = None,
     wrt: Sequence[str] | None = None,
 ) -> QuasiMonteCarloEstimate:
@@ -305,8 +307,11 @@ def quasi_monte_carlo(
     ``0 … n_paths − 1`` form a net); ``(t1 − t0)/dt`` a power of two with ``(t1 − t0)/dt × channels ≤
     21201``; ``solver`` one of :func:`allowed_solvers`: one that needs Brownian increments only (not Lévy
     area), or ``nhsde.PlatenWeak2(increments='gaussian')`` (weak order 2), whose ``ΔW`` come from the points and
-    two-point ``V`` pseudo-random from ``fold_in(key, replicates)``; ``wrt``: names of scalar parameters:
-    ``derivatives`` of the moments in them (forward mode), with errors from the replicate spread.
+    two-point ``V`` pseudo-random from ``fold_in(key, replicates)``; ``antithetic``: every point also solved with
+    its increments reflected (``W → −W``, the point set ``1 − u``), its value the pair's average and its second
+    moment the average of the two paths' (twice the path-steps; it gains where the statistic has a part odd in
+    ``W``, :mod:`._variance_reduction`); ``wrt``: names of scalar parameters: ``derivatives`` of the moments in
+    them (forward mode), with errors from the replicate spread.
     """
     watch = Stopwatch()
     if not isinstance(system, StochasticSystem):
@@ -326,6 +331,8 @@ def quasi_monte_carlo(
     replicates = check_number("replicates", replicates, integer=True)
     if replicates < 2:
         raise ValueError(f"replicates={replicates}; the standard errors need ≥ 2 independent scramblings.")
+    if not isinstance(antithetic, bool):
+        raise TypeError(f"antithetic={antithetic!r}; expected True or False.")
     if replicates * n_paths > MAX_PATH_INDEX + 1:
         raise ValueError(
             f"replicates={replicates}, n_paths={n_paths}: {replicates * n_paths} paths in one run, beyond the "
@@ -365,17 +372,31 @@ def quasi_monte_carlo(
     paths_key = fold_key(key, replicates)  # the pseudo-random parts (PlatenWeak2's V): no scrambling's key
 
     def moments(s):
-        """Per-replicate means ``(R, n, k)`` and second moments ``(R, n, k, k)`` of one run of all the paths."""
-        n_all = replicates * n_paths
-        ens = simulate(
-            s, y0, paths_key, n_paths=n_all, t0=t0, t1=t1, dt=dt, solver=solver, save=kept, batching=batching
-        )
-        assert ens.paths is not None
-        xp = array_module(ens.paths)  # concrete: on the host in float64, no program per shape
-        z = (np.asarray(ens.paths, np.float64) if xp is np else ens.paths).reshape(replicates, n_paths, -1, len(names))
-        mean = xp.mean(z, axis=1)
-        f = z - mean[:, None]
-        return ens.ts, mean, xp.einsum("rpni,rpnj->rnij", f, f) / n_paths + xp.einsum("rni,rnj->rnij", mean, mean)
+        """Per-replicate means ``(R, n, k)`` and second moments ``(R, n, k, k)`` of one run of all the paths (and
+        of their reflections: the averages over both)."""
+        zs = []
+        for solved in (s, reflected(s)) if antithetic else (s,):
+            ens = simulate(
+                solved,
+                y0,
+                paths_key,
+                n_paths=replicates * n_paths,
+                t0=t0,
+                t1=t1,
+                dt=dt,
+                solver=solver,
+                save=kept,
+                batching=batching,
+            )
+            assert ens.paths is not None
+            xp = array_module(ens.paths)  # concrete: on the host in float64, no program per shape
+            z = np.asarray(ens.paths, np.float64) if xp is np else ens.paths
+            zs.append(z.reshape(replicates, n_paths, -1, len(names)))
+        z = xp.stack(zs)  # (1 or 2, R, n_paths, n, k)
+        mean = xp.mean(z, axis=(0, 2))
+        f = z - mean[None, :, None]
+        second = xp.einsum("arpni,arpnj->rnij", f, f) / (len(zs) * n_paths)
+        return ens.ts, mean, second + xp.einsum("rni,rnj->rnij", mean, mean)
 
     (ts, means, seconds), tangents = with_tangents(moments, driven, wrt)
     xp = array_module(means, seconds)
@@ -401,7 +422,7 @@ def quasi_monte_carlo(
         roles=roles_of(system, names),
         replicates=replicates,
         derivatives=derivatives,
-        cost=watch.cost(replicates * n_paths * n_base),
+        cost=watch.cost((2 if antithetic else 1) * replicates * n_paths * n_base),
         statistic=None,
     )
     return on_device(estimate, ts.dtype)
