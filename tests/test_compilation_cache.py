@@ -7,9 +7,12 @@ import pytest
 from jax.experimental.compilation_cache import compilation_cache
 
 import nhsde
+from nhsde._params import checked_on_host
+from nhsde._simulate import forward_only
 from nhsde.runs import main
 
 VARIABLE = "NHSDE_COMPILATION_CACHE"
+SINGULAR = "the derivative with respect to a noise intensity nu at nu = 0 is singular"
 
 
 @pytest.fixture(autouse=True)
@@ -86,3 +89,44 @@ def test_the_solve_itself_is_cached(tmp_path, caplog):
         ask()
     misses = [r.getMessage() for r in caplog.records if "PERSISTENT COMPILATION CACHE MISS" in r.getMessage()]
     assert misses and not [m for m in misses if "'jit__run'" in m], misses
+
+
+def test_a_forward_mode_derivative_in_nu_at_concrete_nu_is_cached(tmp_path, caplog):
+    """The estimators' ν-tangents (forward mode of concrete parameters, ``forward_only``): no differentiated
+    parameter is 0, checked on the host, so √ν's derivative carries no host callback and the solve enters the
+    cache; its next compilation (as in a new process) is not a persistent-cache miss."""
+    nhsde.enable_compilation_cache(tmp_path)
+    scene = nhsde.scenes.BallOnVibratingPlane()
+    system = scene.build()
+
+    def ask():
+        def k_xx(eps, nu):
+            p = system.replace_params(eps=eps, nu=nu)
+            ens = nhsde.simulate(p, scene.initial_state(), jax.random.key(0), n_paths=64, t1=1.0, dt=0.1)
+            return ens.cov[-1, 0, 0]
+
+        with forward_only():
+            return jax.jacfwd(k_xx, argnums=(0, 1))(system.params.eps, system.params.nu)
+
+    d_eps, d_nu = ask()
+    assert jnp.isfinite(d_eps) and jnp.isfinite(d_nu) and d_nu > 0
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith("jit__run-")], sorted(tmp_path.iterdir())
+    jax.clear_caches()
+    with jax.explain_cache_misses(True), caplog.at_level("WARNING", logger="jax"):
+        again = ask()
+    assert jnp.allclose(again[1], d_nu)
+    messages = [r.getMessage() for r in caplog.records]
+    assert not [m for m in messages if "'jit__run'" in m and ("MISS" in m or "Not writing" in m)], messages
+
+
+def test_a_program_traced_with_host_checked_parameters_is_cached_and_never_reused_without(tmp_path):
+    """In ``checked_on_host`` √ν's derivative has no run-time check (the program is cached); the same function traced
+    outside (traced ν, checked by no one) gets its own program, with the check, even after the first."""
+    nhsde.enable_compilation_cache(tmp_path)
+    derivative = jax.jit(jax.grad(nhsde.sqrt_intensity))
+    with checked_on_host():
+        assert float(derivative(4.0)) == 0.25
+    assert [p.name for p in tmp_path.iterdir() if "sqrt_intensity" in p.name], [p.name for p in tmp_path.iterdir()]
+    with pytest.raises(Exception, match=SINGULAR):
+        derivative(0.0)
+    assert float(derivative(4.0)) == 0.25

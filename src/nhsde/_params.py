@@ -13,6 +13,7 @@ interface: a system's ``params`` is any pytree, and its
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from typing import Any, cast
 
@@ -20,10 +21,23 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax._src import config as _jax_config
 
 from ._misc import is_concrete
 
 __all__ = ["AbstractParameters", "check_ranges", "parameter", "sqrt_intensity", "validated"]
+
+_CHECKED_ON_HOST = _jax_config.State(
+    "nhsde_parameters_checked_on_host",
+    False,
+    "nhsde internal: the parameters of the programs traced now were checked on the host (ranges, and no "
+    "differentiated parameter is 0), so their run-time checks (host callbacks) are left out of the programs.",
+    include_in_jit_key=True,
+    include_in_trace_context=True,  # in every jit and transformation cache key: a program traced without the
+    # checks is never reused by a trace that needs them
+)
+"""JAX's persistent compilation cache writes no entry for a program with a host callback (``eqx.error_if``); a
+program traced in :func:`checked_on_host` has none of the parameters' checks."""
 
 
 def _as_leaf(value):
@@ -181,11 +195,55 @@ def validated(params):
 
     Concrete values were checked when each :class:`AbstractParameters` was built;
     traced ones (under ``jit``/``grad``) get an ``eqx.error_if`` naming the
-    parameter and its range.
+    parameter and its range, unless their caller checked them on the host
+    (:func:`checked_on_host`).
     """
+    if parameters_checked_on_host():
+        return params  # the caller checked them on the host (`checked_on_host`)
     return jax.tree_util.tree_map(
         lambda node: _with_run_time_checks(node) if _is_parameters(node) else node, params, is_leaf=_is_parameters
     )
+
+
+def parameters_checked_on_host() -> bool:
+    """Whether the programs traced now take parameters that their caller checked on the host
+    (:func:`checked_on_host`)."""
+    return bool(_CHECKED_ON_HOST.value)
+
+
+@contextlib.contextmanager
+def checked_on_host():
+    """Within: the parameters of the programs traced here (traced leaves included) were checked on the host by the
+    caller: their ranges in the state's precision (:func:`check_ranges`), and no parameter leaf that carries a
+    tangent is 0 (:func:`differentiated_nonzero`), so that ``√ν``'s derivative is finite.  The programs then leave
+    out those run-time checks, host callbacks with which JAX's persistent compilation cache writes no entry.
+
+    The setting is part of JAX's trace context and jit key, so it is in every jit and transformation cache key: a
+    program traced here is never reused outside, where traced parameters need their checks.  As with the
+    estimators' forward mode, ``simulate`` then leaves the stationary-variance warning of traced parameters to the
+    caller (``stable_step`` and the warning are the host's, on the concrete values).
+    """
+    with _CHECKED_ON_HOST(True):
+        yield
+
+
+def differentiated_nonzero(params) -> bool:
+    """Whether the primal values of ``params`` are known on the host (concrete, or tracers of ``jax.jvp`` /
+    ``jax.jacfwd`` over concrete values) and every leaf that carries a tangent is nonzero everywhere: then no
+    :func:`sqrt_intensity` of a parameter is differentiated at 0, the one case its run-time check catches."""
+    leaves = jax.tree_util.tree_leaves(params)
+    traced = [x for x in leaves if isinstance(x, jax.core.Tracer)]
+    # stop_gradient of a forward-mode tracer over a concrete value is that value (the tangent dropped)
+    primals = [jax.lax.stop_gradient(x) for x in traced]
+    if not is_concrete(primals):
+        return False  # under jit or vmap: the values are not known here
+    return all(bool(np.all(np.asarray(x) != 0)) for x in primals)
+
+
+_SINGULAR = (
+    "the derivative with respect to a noise intensity nu at nu = 0 is singular (paths scale like √nu); "
+    "differentiate at nu > 0 or with respect to √nu."
+)
 
 
 @jax.custom_jvp
@@ -211,10 +269,10 @@ def sqrt_intensity(nu):
 def _sqrt_intensity_jvp(primals, tangents):
     (nu,), (dnu,) = primals, tangents
     zero = nu == 0
-    root = eqx.error_if(
-        jnp.sqrt(nu),
-        jnp.any(zero),
-        "the derivative with respect to a noise intensity nu at nu = 0 is singular (paths scale like √nu); "
-        "differentiate at nu > 0 or with respect to √nu.",
-    )
+    if parameters_checked_on_host():
+        # no differentiated parameter is 0 (checked on the host, no host callback in the program); a ν computed
+        # from them that is 0 anyway (the leaf check cannot see it) gives a nan derivative, never a silent one
+        root = jnp.sqrt(nu)
+        return root, dnu * jnp.where(zero, jnp.nan, 1 / (2 * jnp.where(zero, 1.0, root)))
+    root = eqx.error_if(jnp.sqrt(nu), jnp.any(zero), _SINGULAR)
     return root, jnp.where(zero, 0.0, dnu / (2 * jnp.where(zero, 1.0, root)))

@@ -51,7 +51,7 @@ from ._ensemble import (
 from ._interrupt import POLL_ABOVE, POLL_STEPS, poll, watching
 from ._misc import cast_floats, check_key, check_number, check_steps, is_concrete, under_trace
 from ._options import AbstractSteps, AdaptiveSteps, Batching, FixedSteps
-from ._params import check_ranges, validated
+from ._params import check_ranges, checked_on_host, differentiated_nonzero, parameters_checked_on_host, validated
 from ._solvers import SOLVERS, ExponentialEuler, SolverNeeds, solver_needs
 from ._system import StochasticSystem
 from ._weak import WeakIncrement
@@ -114,6 +114,9 @@ class _Plan:
     traced_stability: bool
     poll: bool  # Ctrl-C polled in the step loop (a host callback: the program cannot enter the persistent cache)
     params_checked: bool  # concrete parameters (or their tangents), their ranges checked before the run
+    # no differentiated parameter is 0, checked before the run: traced in `checked_on_host` (part of every cache
+    # key), √ν's derivative carries no run-time check (a host callback, which keeps a program out of the cache)
+    nonzero_checked: bool
 
     @property
     def intervals(self) -> int:
@@ -736,14 +739,19 @@ def simulate(
         traced_stability=_checks_linear(system, needs) and not is_concrete(system.params),
         poll=n_paths * n_steps * system.state_dim > POLL_ABOVE,
         # forward mode of concrete values (the estimators' tangents): the primal values were checked when built
-        params_checked=is_concrete(system.params) or _FORWARD_ONLY.get(),
+        params_checked=is_concrete(system.params) or _FORWARD_ONLY.get() or parameters_checked_on_host(),
+        nonzero_checked=parameters_checked_on_host()
+        or (_FORWARD_ONLY.get() and not is_concrete(system.params) and differentiated_nonzero(system.params)),
     )
     meter = dfx.NoProgressMeter() if progress_meter is None else progress_meter
     if not isinstance(meter, dfx.AbstractProgressMeter):
         raise TypeError(
             f"progress_meter={meter!r}; expected a diffrax progress meter, e.g. diffrax.TqdmProgressMeter()."
         )
-    with watching():  # Ctrl-C stops the compiled run within POLL_STEPS steps
+    with (
+        watching(),  # Ctrl-C stops the compiled run within POLL_STEPS steps
+        checked_on_host() if plan.nonzero_checked else contextlib.nullcontext(),
+    ):
         ts, sums, (n_failed, first_failed), failed, paths, unstable = _run(
             system, needs, y0, key, _index(first_path), grid, about, plan, meter
         )
