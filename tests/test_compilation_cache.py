@@ -130,3 +130,26 @@ def test_a_program_traced_with_host_checked_parameters_is_cached_and_never_reuse
     with pytest.raises(Exception, match=SINGULAR):
         derivative(0.0)
     assert float(derivative(4.0)) == 0.25
+
+
+def test_the_pilot_is_timed_once_per_cache_folder(tmp_path, monkeypatch, capsys):
+    """The command's estimate comes from a timed pilot; its seconds are kept in the cache folder, so the same run
+    again prints the same estimate without simulating the pilot (whose programs a warm process would load)."""
+    from nhsde.runs import _cli
+
+    monkeypatch.setenv(VARIABLE, str(tmp_path))
+    args = ["simulate", "ball-on-vibrating-plane", "--paths", "4096", "--t1", "1", "--dt", "0.05", "--save-points", "2"]
+    timed = []
+    real = _cli._timed_pilot
+    monkeypatch.setattr(_cli, "_timed_pilot", lambda *a: timed.append(a) or real(*a))
+    assert main(args) == 0
+    first = capsys.readouterr().out.splitlines()[0]
+    assert len(timed) == 1 and "roughly" in first and (tmp_path / _cli.PILOTS).is_file()
+    assert main(args) == 0
+    assert capsys.readouterr().out.splitlines()[0] == first and len(timed) == 1
+    assert main([*args[:3], "8192", *args[4:]]) == 0  # the same pilot: twice the paths, twice the estimate
+    assert len(timed) == 1
+    (tmp_path / _cli.PILOTS).write_text("{not json")  # a damaged file is measured again and rewritten
+    assert main(args) == 0 and len(timed) == 2
+    monkeypatch.setenv(VARIABLE, "off")  # no cache folder: every process times its pilot
+    assert main(args) == 0 and len(timed) == 3

@@ -5,7 +5,8 @@ see :func:`~nhsde.runs.run`); ``nhsde simulate SCENE --out FILE`` adds the
 forward-mode derivatives ``d_mean_d_eps``, ``d_mean_d_nu``, ``d_cov_d_eps``,
 ``d_cov_d_nu`` over ``time × name`` (``× name2``).  Before it simulates, the
 command prints ``paths × steps`` and, for a run long enough, a rough time from
-a timed pilot.  Bad input (a run file, an option, an output path) ends it with
+a timed pilot (kept in the compilation cache folder: the same run again prints the
+same estimate without simulating the pilot).  Bad input (a run file, an option, an output path) ends it with
 a one-line message and exit status 2; a run that fails, with status 1.
 """
 
@@ -13,6 +14,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import hashlib
+import json
 import os
 import re
 import sys
@@ -29,6 +32,13 @@ from ._fit import fit_data_flags
 from ._sweep import sweep_command, sweep_flags
 
 __all__ = ["build_parser", "main"]
+
+PILOTS = "nhsde-pilots.json"
+"""The seconds of earlier processes' timed pilots, in the compilation cache folder (JAX reads only its ``*-cache``
+files there): a second run of a command prints its estimate without simulating, and so tracing and loading, the
+pilot's programs again (about half a second of a warm-cache process)."""
+
+_cache_folder: Path | None = None  # this process's compilation cache folder (main), None where it is off
 
 RUN_EXAMPLE = """\
 a run file (TOML; every key is checked, unknown keys are errors):
@@ -132,18 +142,74 @@ def _duration(seconds: float) -> str:
 
 def _plan(config, n_paths: int, derivatives: bool = False) -> str:
     """``paths × steps`` of a run and, unless it is about as short as a pilot, roughly how long it takes:
-    a pilot of 64 paths over at most 100 steps, run twice (the first compiles), timed and scaled."""
-    import jax
-
-    from .._ensemble import Save
-    from .._simulate import simulate
-
+    a pilot of 64 paths over at most 100 steps, run twice (the first compiles), timed and scaled; the seconds of
+    the same pilot in an earlier process where the compilation cache folder keeps them (:data:`PILOTS`)."""
     s = config.data["solver"]
     steps = round((s["t1"] - s["t0"]) / s["dt"])
     text = f"{n_paths} paths × {steps} steps ({s['name']}, dt = {s['dt']:g})"
     m = min(steps, 100)
     if n_paths * steps <= 16 * 64 * m:
         return text
+    key = _pilot_key(config, m)
+    seconds = _stored_pilot(key)
+    if seconds is None:
+        seconds = _timed_pilot(config, m)
+        _store_pilot(key, seconds)
+    seconds *= n_paths * steps / (64 * m) * (3 if derivatives else 1)
+    return (
+        text + f", roughly {_duration(seconds)}{' with the derivatives' if derivatives else ''} "
+        f"(an estimate from a timed pilot of 64 paths × {m} steps)"
+    )
+
+
+def _pilot_key(config, m: int) -> str:
+    """What a pilot's time depends on: the run without its paths and statistics, its ``m`` steps, the JAX version
+    and the device."""
+    import jax
+
+    data = {k: v for k, v in config.data.items() if k not in ("paths", "statistics")}
+    described = [data, m, jax.__version__, jax.devices()[0].device_kind, jax.config.jax_enable_x64]
+    return hashlib.sha256(json.dumps(described, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _stored_pilot(key: str) -> float | None:
+    """The seconds an earlier process's pilot took (:data:`PILOTS`), or None (none, unreadable, or no cache)."""
+    if _cache_folder is None:
+        return None
+    try:
+        seconds = json.loads((_cache_folder / PILOTS).read_text()).get(key)
+    except (OSError, ValueError, AttributeError):
+        return None
+    return float(seconds) if isinstance(seconds, (int, float)) and seconds > 0 else None
+
+
+def _store_pilot(key: str, seconds: float) -> None:
+    """Keep the pilot's seconds for the next process (best effort: a folder that cannot be written is left)."""
+    if _cache_folder is None:
+        return
+    path = _cache_folder / PILOTS
+    try:
+        stored = json.loads(path.read_text()) if path.exists() else {}
+        stored = stored if isinstance(stored, dict) else {}
+    except (OSError, ValueError):
+        stored = {}
+    stored[key] = seconds
+    try:
+        partial = path.with_name(f"{PILOTS}.{os.getpid()}")
+        partial.write_text(json.dumps(stored))
+        partial.replace(path)  # whole or not at all, for processes that read it meanwhile
+    except OSError:
+        pass
+
+
+def _timed_pilot(config, m: int) -> float:
+    """Seconds of a pilot of 64 paths over ``m`` steps, run twice (the first compiles), the second timed."""
+    import jax
+
+    from .._ensemble import Save
+    from .._simulate import simulate
+
+    s = config.data["solver"]
     built = config.build()
 
     def pilot() -> float:
@@ -164,11 +230,7 @@ def _plan(config, n_paths: int, derivatives: bool = False) -> str:
         return time.perf_counter() - start
 
     pilot()
-    seconds = pilot() * n_paths * steps / (64 * m) * (3 if derivatives else 1)
-    return (
-        text + f", roughly {_duration(seconds)}{' with the derivatives' if derivatives else ''} "
-        f"(an estimate from a timed pilot of 64 paths × {m} steps)"
-    )
+    return pilot()
 
 
 def _saved(out: Path) -> str:
@@ -703,7 +765,8 @@ def main(argv=None) -> int:
     commands = {"scenes": _cmd_scenes, "simulate": _cmd_simulate, "fit": _cmd_fit, "sweep": sweep_command}
     command = commands[args.command]
     try:
-        enable_compilation_cache()  # $NHSDE_COMPILATION_CACHE: another folder, or off
+        global _cache_folder
+        _cache_folder = enable_compilation_cache()  # $NHSDE_COMPILATION_CACHE: another folder, or off
         with (
             _current_directory_on_path(),
             processes(args),
