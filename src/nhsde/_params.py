@@ -232,7 +232,7 @@ def differentiated_nonzero(params) -> bool:
     ``jax.jacfwd`` over concrete values) and every leaf that carries a tangent is nonzero everywhere: then no
     :func:`sqrt_intensity` of a parameter is differentiated at 0, the one case its run-time check catches."""
     leaves = jax.tree_util.tree_leaves(params)
-    traced = [x for x in leaves if isinstance(x, jax.core.Tracer)]
+    traced = [x for x in leaves if not is_concrete(x)]
     # stop_gradient of a forward-mode tracer over a concrete value is that value (the tangent dropped)
     primals = [jax.lax.stop_gradient(x) for x in traced]
     if not is_concrete(primals):

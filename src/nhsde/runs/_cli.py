@@ -168,7 +168,7 @@ def _pilot_key(config, m: int) -> str:
     import jax
 
     data = {k: v for k, v in config.data.items() if k not in ("paths", "statistics")}
-    described = [data, m, jax.__version__, jax.devices()[0].device_kind, jax.config.jax_enable_x64]
+    described = [data, m, jax.__version__, jax.devices()[0].device_kind, jax.dtypes.canonicalize_dtype(np.float64).name]
     return hashlib.sha256(json.dumps(described, sort_keys=True, default=str).encode()).hexdigest()
 
 
