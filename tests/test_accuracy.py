@@ -23,6 +23,7 @@ from nhsde.scenes import BallOnVibratingPlane, ChaplyginBall, ball_covariances
 from nhsde.statistics import (
     Multilevel,
     MultilevelEstimate,
+    MultilevelQuasiMonteCarlo,
     PlainMonteCarlo,
     QuasiMonteCarlo,
     Richardson,
@@ -396,3 +397,22 @@ def test_a_stratonovich_system_is_priced_first_with_heun_which_needs_no_ito_conv
     errors = np.array([(r.value()[0] - exact) / r.rmse for r in runs])
     assert np.sqrt(np.mean(errors**2)) <= math.sqrt(scipy.stats.chi2.ppf(0.99, 4) / 4), (errors, runs[0].report())
     assert abs(exact - math.exp(mu)) > 5 * runs[0].rmse  # the two calculi are told apart at this target
+
+
+def test_multilevel_quasi_monte_carlo_is_priced_from_its_pilot_and_reaches_the_target():
+    """``MultilevelQuasiMonteCarlo``: its pilot (every pilot level at two point counts) predicts levels and points;
+    the run doubles points until its standard error meets the budget left by the bias bound at its finest step.
+    K_xx(1) of the ball within 3 target RMSEs (Chebyshev), the levels those planned, each level's points at most the
+    planned cap (some doubled beyond the first 64), and the work done within 2× of the predicted."""
+    eps = 0.004 * K_XX
+    r = to_accuracy(
+        BALL.build(), Y0, jax.random.key(23), rmse=eps, **(FAST | dict(estimators=(MultilevelQuasiMonteCarlo(),)))
+    )
+    plan = next(a for a in r.alternatives if a.name == r.choice)
+    assert r.choice == "multilevel quasi-Monte Carlo, euler" and "levels, 16 × [" in plan.note, r.report()
+    value, se = r.value()
+    assert abs(value - K_XX) <= 3 * eps and 0 < se <= eps, r.report()
+    counts = r.estimate.n_paths_per_level
+    assert len(counts) == len(plan.n_paths) >= 2 and all(n <= cap for n, cap in zip(counts, plan.n_paths)), r.report()
+    assert max(counts) > 16 * 64, counts
+    assert r.predicted.path_steps / 2 <= r.run_cost.path_steps <= 2 * r.predicted.path_steps, r.report()

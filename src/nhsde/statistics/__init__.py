@@ -13,7 +13,8 @@
   driven by the same increments), :func:`quasi_monte_carlo` (scrambled Sobol'
   points through a Brownian bridge), :func:`multilevel_quasi_monte_carlo`; :func:`to_accuracy` chooses among
   them from a pilot run for a requested RMSE, among estimator objects (:class:`PlainMonteCarlo`,
-  :class:`Richardson`, :class:`Multilevel`, :class:`ControlVariate`, :class:`QuasiMonteCarlo`; ``estimators=``) that
+  :class:`Richardson`, :class:`Multilevel`, :class:`ControlVariate`, :class:`QuasiMonteCarlo`,
+  :class:`MultilevelQuasiMonteCarlo`; ``estimators=``) that
   each predict their work from a pilot and run their plan.  Each returns an :class:`AbstractEstimate` (moments, standard
   errors, ``derivatives``, measured ``cost``); a statistic is named once, :class:`Mean` or :class:`Covariance`.
 - Derivatives of simulated moments with their standard errors: :func:`moment_sensitivities`.
@@ -53,6 +54,7 @@ from ._estimators import (
     AbstractEstimator as AbstractEstimator,
     ControlVariate as ControlVariate,
     Multilevel as Multilevel,
+    MultilevelQuasiMonteCarlo as MultilevelQuasiMonteCarlo,
     PlainMonteCarlo as PlainMonteCarlo,
     QuasiMonteCarlo as QuasiMonteCarlo,
     Richardson as Richardson,

@@ -212,11 +212,14 @@ def to_accuracy(
       or finer.
     - ``estimators``: the estimators to choose among (:class:`PlainMonteCarlo`, :class:`Richardson`,
       :class:`Multilevel`, each with its solver and plain or antithetic paths; :class:`ControlVariate`,
-      :class:`QuasiMonteCarlo`).  Default: each of the first three for Euler–Maruyama and
+      :class:`QuasiMonteCarlo`, :class:`MultilevelQuasiMonteCarlo`).  Default: each of the first three for
+      Euler–Maruyama and
       ``PlatenWeak2(increments='gaussian')`` (those the system's driver allows), and Heun's method (``'heun2'``)
       where the system is in Stratonovich form with state-dependent noise (:func:`native_solvers`), plain and
       antithetic (Wiener drivers), then the control variate (Euler) and quasi-Monte Carlo with each solver (its
-      antithetic form only when given: at equal work it gains only on statistics odd in ``W``); ``solver``,
+      antithetic form only when given: at equal work it gains only on statistics odd in ``W``; multilevel
+      quasi-Monte Carlo only when given: its pilot, priced from the default coarsest step, predicted more work
+      than extrapolation on Chaplygin's ball at 1e-3 and its own pilot cost more time than it saved); ``solver``,
       ``weak_order`` and ``antithetic`` narrow that default set:
     - ``solver``: consider only this one (``PlatenWeak2`` needs ``increments='gaussian'``),
       of weak order ``weak_order`` (default 2 for ``PlatenWeak2``, else 1).
@@ -278,7 +281,8 @@ def to_accuracy(
         if not estimators or not all(isinstance(e, AbstractEstimator) for e in estimators):
             raise TypeError(
                 f"estimators={estimators!r}; expected a non-empty sequence of nhsde.statistics estimators "
-                "(PlainMonteCarlo, Richardson, Multilevel, ControlVariate, QuasiMonteCarlo)."
+                "(PlainMonteCarlo, Richardson, Multilevel, ControlVariate, QuasiMonteCarlo, "
+                "MultilevelQuasiMonteCarlo)."
             )
         for e in estimators:
             e.check(system)

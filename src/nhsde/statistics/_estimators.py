@@ -16,7 +16,7 @@ import abc
 import dataclasses
 import math
 import time
-from typing import Any
+from typing import Any, ClassVar
 
 import diffrax as dfx
 import jax
@@ -27,10 +27,10 @@ from .._misc import fold_key
 from .._options import Batching, FixedSteps
 from .._system import StochasticSystem
 from ._control_variate import control_variate as linearised_control_variate
-from ._cost import MAX_REFINEMENTS, best_single, bias, multilevel_plan, whole_pieces
+from ._cost import MAX_REFINEMENTS, allocate, best_single, bias, level_cost, multilevel_plan, whole_pieces
 from ._estimate import AbstractEstimate, AbstractStatistic
 from ._extrapolation import extrapolate
-from ._multilevel import multilevel_monte_carlo
+from ._multilevel import MultilevelEstimate, multilevel_monte_carlo
 from ._multilevel_qmc import RUN_LIMIT, quasi_monte_carlo_to_variance
 from ._paths import KEY_PATHS, RUN_PATHS, solve_paths
 from ._pilot import Candidate, candidate, run_pilot
@@ -42,6 +42,7 @@ __all__ = [
     "AbstractEstimator",
     "ControlVariate",
     "Multilevel",
+    "MultilevelQuasiMonteCarlo",
     "PlainMonteCarlo",
     "Pricing",
     "QuasiMonteCarlo",
@@ -358,10 +359,145 @@ QMC_REPLICATES = 16
 QMC_FINER = 2
 """Halvings of the pilot's finest step that quasi-Monte Carlo's pilot program covers, so that a run at a finer step
 than the pilot's (tighter targets) compiles nothing new."""
+QMC_MARGIN = 1 + math.sqrt(2 / (QMC_REPLICATES - 1))
+"""A run's variance target is its budget over this: one standard error of a 16-scramblings variance estimate."""
+
+
+def _power_of_two(points: float) -> int:
+    """Points per scrambling: a power of two ≥ 64 (a net), at least ``points``."""
+    return max(BLOCK, 1 << max(0, math.ceil(math.log2(max(points, 1.0)))))
 
 
 @dataclasses.dataclass(frozen=True)
-class QuasiMonteCarlo(AbstractEstimator):
+class _QmcPilot:
+    """Quasi-Monte Carlo's pilot: the estimates at ``n_q`` and ``2 n_q`` points per scrambling on each level, the
+    measured cost ratio ``κ`` and the pilot's work (path-steps, the plain reference run included)."""
+
+    first: MultilevelEstimate
+    second: MultilevelEstimate
+    n_q: int
+    kappa: float
+    work: float
+
+    def rates(self, statistic: AbstractStatistic) -> list[tuple[float, float]]:
+        """Per level ``(a_ℓ, β_ℓ)``: its estimate's variance ``a_ℓ N^{−β_ℓ}`` at ``N`` points per scrambling, ``β``
+        measured between the two counts and clamped to ``[1, 2]`` (1 the Monte-Carlo rate, 2 an error falling as
+        ``1/N``, smooth statistics)."""
+        out = []
+        for v1, v2 in zip(*(_level_variances(r) for r in (self.first, self.second)), strict=True):
+            beta = min(max(math.log2(v1 / v2), 1.0), 2.0) if v1 > 0 and v2 > 0 else 1.0
+            out.append((v2 * (2 * self.n_q) ** beta, beta))
+        return out
+
+
+def _level_variances(res: MultilevelEstimate) -> list[float]:
+    """The variance of each level's estimate (``V̂_ℓ``, from the scramblings' spread)."""
+    return [float(v) / n for v, n in zip(res.level_variances, res.n_paths_per_level, strict=True)]
+
+
+class _AbstractQuasiMonteCarlo(AbstractEstimator):
+    """What quasi-Monte Carlo and multilevel quasi-Monte Carlo share: where they apply, their pilot (two point
+    counts of 16 scramblings, the second timed against a plain solve for ``κ``) and their run (points doubled on
+    the level with the most variance per unit of work until the standard error meets the target)."""
+
+    @property
+    def own_pilot(self) -> bool:
+        return True
+
+    def applies(self, pricing: Pricing) -> str | None:
+        if _finest(pricing) < pricing.pilot_levels - 1:
+            return "does not apply: the pilot's finest step exceeds the Sobol' dimensions"
+        if pricing.steps0 & (pricing.steps0 - 1):
+            return f"does not apply: (t1 − t0)/dt = {pricing.steps0} steps, not a power of two"
+        if not pricing.system.noise.continuous:
+            return f"does not apply: the driver {type(pricing.system.noise).__name__} has jumps"
+        return None
+
+    pilot_fold: ClassVar[int]  # the pilot key's fold index, its own
+
+    def _pilot(self, pricing: Pricing, h: float, n_levels: int) -> _QmcPilot | tuple[str, float]:
+        """The pilot on ``n_levels`` levels from the step ``h``, or why it failed and its work."""
+        key = fold_key(pricing.pilot_key, self.pilot_fold)
+        n_q = max(BLOCK, 1 << ((pricing.pilot_paths // QMC_REPLICATES).bit_length() - 1))  # points per scrambling
+
+        def run(k, points):
+            start = time.perf_counter()
+            res = self._points(pricing, k, h, variance=0.0, max_points=(points,) * n_levels)
+            jax.block_until_ready((res.mean, res.cov, res.mean_se, res.cov_se))
+            return res, time.perf_counter() - start
+
+        try:
+            first, _ = run(key, n_q)
+            second, seconds = run(fold_key(key, 1), 2 * n_q)  # compiled now: timed, and twice the points
+        except (ValueError, TypeError, SimulationError) as e:  # paths blowing up: not at this step
+            return f"does not apply: {str(e).splitlines()[0][:200]}", 0.0
+        path_steps = (2 if self.antithetic else 1) * second.cost.path_steps
+        # κ against plain Monte Carlo with the solver at the finest pilot step, in the compiled program its other
+        # alternatives run (its pilot compiled it), in either cost mode: with cost='seconds' every alternative's
+        # seconds are its path-steps times its pilot's rate, so quasi-Monte Carlo's must be too, via κ
+        h_b = pricing.h0 / 2 ** (pricing.pilot_levels - 1)
+        steps_b = pricing.steps0 * 2 ** (pricing.pilot_levels - 1)
+        n_ref = RUN_PATHS * math.ceil(path_steps / steps_b / RUN_PATHS)
+        reference = dict(
+            steps=FixedSteps(h_b, brownian_dt=h_b), solver=self.solver, **pricing.run_options(tangents=False)
+        )
+        start = time.perf_counter()
+        jax.block_until_ready(
+            solve_paths(pricing.system, pricing.y0, fold_key(key, 2), first_path=0, n_paths=n_ref, **reference)
+        )
+        plain_rate = (time.perf_counter() - start) / (n_ref * steps_b)
+        kappa = seconds / path_steps / plain_rate if plain_rate > 0 else math.nan
+        work = 1.5 * path_steps + float(n_ref * steps_b)
+        if not math.isfinite(kappa) or not all(v > 0 and math.isfinite(v) for v in _level_variances(second)):
+            return "non-finite pilot", work
+        return _QmcPilot(first, second, n_q, kappa, work)
+
+    def _points(self, pricing: Pricing, key, h: float, *, variance: float, max_points: tuple[int, ...], wrt=()):
+        """Quasi-Monte Carlo on the levels ``h … h 2^{1−L}`` (``L = len(max_points)``), points doubled until the
+        statistic's squared standard error is at most ``variance`` (or ``max_points``), in the program of the driver
+        whose direction numbers cover :data:`QMC_FINER` halvings of the pilot's finest step: the run shares the
+        pilot's program unless it is finer still."""
+        m = pricing.system.noise_dim
+        steps_b = pricing.steps0 << min(pricing.pilot_levels - 1 + QMC_FINER, _finest(pricing))
+        finest = round((pricing.t1 - pricing.t0) / h) << (len(max_points) - 1)
+        return quasi_monte_carlo_to_variance(
+            pricing.system,
+            pricing.y0,
+            key,
+            t0=pricing.t0,
+            t1=pricing.t1,
+            dt=h,
+            solver=self.solver,
+            save=pricing.save,
+            statistic=pricing.statistic,
+            variance=variance,
+            max_points=max_points,
+            dimension=max(steps_b, finest) * m,
+            replicates=QMC_REPLICATES,
+            batching=pricing.batching,
+            wrt=wrt,
+            antithetic=self.antithetic,
+        )
+
+    def run(self, pricing: Pricing, plan: AccuracyAlternative) -> tuple[AbstractEstimate, float]:
+        """The points doubled until the standard error meets the target with the bias bound at the finest step,
+        ``SE² (1 + √(2/(R − 1))) ≤ ε² − (|C| h_L^p)²`` (a margin of one standard error of the variance estimate);
+        the plan's counts, at the slowest rate, are the most.  With ``wrt``, the derivatives from the same points."""
+        own = pricing.pilots[self.candidate.label]
+        h_fine = plan.dt / 2 ** (len(plan.n_paths) - 1)
+        budget = pricing.rmse**2 - bias(own.bias_bound, h_fine, own.order) ** 2
+        most = tuple(n // QMC_REPLICATES for n in plan.n_paths)
+        key = pricing.run_key
+        res = self._points(pricing, key, plan.dt, variance=budget / QMC_MARGIN, max_points=most, wrt=pricing.wrt)
+        return res, plan.bias
+
+    def kept_samples(self, plan: AccuracyAlternative) -> float:
+        solves = (2 if self.antithetic else 1) * (2 if len(plan.n_paths) > 1 else 1)  # a level's fine and coarse
+        return solves * min(max(plan.n_paths), RUN_LIMIT)  # one run's values at a time, reduced into sums
+
+
+@dataclasses.dataclass(frozen=True)
+class QuasiMonteCarlo(_AbstractQuasiMonteCarlo):
     """Randomised quasi-Monte Carlo (16 scrambled Sobol' point sets through a Brownian bridge) with ``solver``:
     Euler (``p = 1``) or :class:`~nhsde.PlatenWeak2` with Gaussian increments (``p = 2``; ``W`` from the points);
     ``antithetic``: each point also solved with its increments reflected, its value the pair's average (work
@@ -382,145 +518,136 @@ class QuasiMonteCarlo(AbstractEstimator):
     weak_order: int | None = None
     antithetic: bool = False
     method: str = dataclasses.field(default="quasi-Monte Carlo", init=False, repr=False)
-
-    @property
-    def own_pilot(self) -> bool:
-        return True
-
-    def applies(self, pricing: Pricing) -> str | None:
-        if _finest(pricing) < pricing.pilot_levels - 1:
-            return "does not apply: the pilot's finest step exceeds the Sobol' dimensions"
-        if pricing.steps0 & (pricing.steps0 - 1):
-            return f"does not apply: (t1 − t0)/dt = {pricing.steps0} steps, not a power of two"
-        if not pricing.system.noise.continuous:
-            return f"does not apply: the driver {type(pricing.system.noise).__name__} has jumps"
-        return None
+    pilot_fold: ClassVar[int] = 98
 
     def predict(self, pricing: Pricing) -> AccuracyAlternative:
         own = pricing.pilot(self.candidate)
-        levels, steps0, h0 = pricing.pilot_levels, pricing.steps0, pricing.h0
-        h_b, steps_b = h0 / 2 ** (levels - 1), steps0 * 2 ** (levels - 1)
-        n_q = max(BLOCK, 1 << ((pricing.pilot_paths // QMC_REPLICATES).bit_length() - 1))  # points per scrambling
-        key = fold_key(pricing.pilot_key, 98)
-
-        def pilot(k, points):
-            start = time.perf_counter()
-            res = self._points(pricing, k, h_b, variance=0.0, max_points=points)
-            jax.block_until_ready((res.mean, res.cov, res.mean_se, res.cov_se))
-            return res, time.perf_counter() - start
-
-        try:
-            first, _ = pilot(key, n_q)
-            res, seconds = pilot(fold_key(key, 1), 2 * n_q)  # compiled now: timed, and twice the points
-        except (ValueError, TypeError, SimulationError) as e:  # paths blowing up: not at this step
-            return self.row(f"does not apply: {str(e).splitlines()[0][:200]}")
-        pairs = 2 if self.antithetic else 1  # solves per point
-        path_steps = pairs * QMC_REPLICATES * 2 * n_q * steps_b
-        # κ against plain Monte Carlo with the solver at the same step, in the compiled program its other
-        # alternatives run (its pilot compiled it), in either cost mode: with cost='seconds' every alternative's
-        # seconds are its path-steps times its pilot's rate, so quasi-Monte Carlo's must be too, via κ
-        n_ref = RUN_PATHS * math.ceil(path_steps / steps_b / RUN_PATHS)
-        reference = dict(
-            steps=FixedSteps(h_b, brownian_dt=h_b), solver=self.solver, **pricing.run_options(tangents=False)
-        )
-        start = time.perf_counter()
-        jax.block_until_ready(
-            solve_paths(pricing.system, pricing.y0, fold_key(key, 2), first_path=0, n_paths=n_ref, **reference)
-        )
-        plain_rate = (time.perf_counter() - start) / (n_ref * steps_b)
-        kappa = seconds / path_steps / plain_rate if plain_rate > 0 else math.nan
-        work = 1.5 * path_steps + float(n_ref * steps_b)
-        se_first, se = (float(r.value(pricing.statistic)[1]) for r in (first, res))
-        if not all(math.isfinite(x) for x in (se_first, se, kappa)) or se <= 0:
-            return self.row("non-finite pilot", work)
-        # the variance falls as N^−β between the pilot's two counts: β = 1 at the Monte-Carlo rate, 2 where the
-        # error falls as 1/N (smooth statistics); clamped to [1, 2], a count of points at the Monte-Carlo rate is
-        # the most the run takes (it stops when its own standard error meets the target)
-        rate = min(max(2 * math.log2(se_first / se), 1.0), 2.0)
-        max_k = _finest(pricing)
+        h_b = pricing.h0 / 2 ** (pricing.pilot_levels - 1)
+        pilot = self._pilot(pricing, h_b, 1)
+        if isinstance(pilot, tuple):
+            return self.row(*pilot)
+        n_q, work = pilot.n_q, pilot.work
+        ((a, rate),) = pilot.rates(pricing.statistic)
 
         def per_replicate(n: float, beta: float | None = None) -> int:
-            """Points per scrambling (a power of two ≥ 64) for ``n`` paths at the Monte-Carlo rate, at rate ``β``
-            from the pilot's ``2 n_q``; ``None``: the most, at the slowest rate either side (1 above, 2 below)."""
+            """Points per scrambling for ``n`` paths at the Monte-Carlo rate, at rate ``β`` from the pilot's
+            ``2 n_q``; ``None``: the most, at the slowest rate either side (1 above, 2 below)."""
             r = max(n, 1.0) / QMC_REPLICATES / (2 * n_q)
-            points = 2 * n_q * (max(r, math.sqrt(r)) if beta is None else r ** (1 / beta))
-            return max(BLOCK, 1 << max(0, math.ceil(math.log2(points))))
+            return _power_of_two(2 * n_q * (max(r, math.sqrt(r)) if beta is None else r ** (1 / beta)))
 
-        variance = se**2 * QMC_REPLICATES * 2 * n_q  # per point, at the Monte-Carlo rate
-        cost, k, n_total, _ = best_single(
+        variance = a * (2 * n_q) ** -rate * QMC_REPLICATES * 2 * n_q  # per point, at the Monte-Carlo rate
+        cost, k, _, _ = best_single(
             variance,
             own.bias_bound,
             own.order,
             pricing.rmse,
-            h0,
-            steps0,
-            pairs * kappa,
-            max_k,
+            pricing.h0,
+            pricing.steps0,
+            (2 if self.antithetic else 1) * pilot.kappa,
+            _finest(pricing),
             lambda n: QMC_REPLICATES * per_replicate(n, rate),
         )
         if k < 0:
             return self.row("no step reaches the target within the Sobol' dimensions", work)
-        h = h0 / 2**k
-        budget = (pricing.rmse - bias(own.bias_bound, h, own.order)) * (
-            pricing.rmse + bias(own.bias_bound, h, own.order)
-        )
-        most = per_replicate(variance / budget)  # the run's cap
+        h = pricing.h0 / 2**k
+        b = bias(own.bias_bound, h, own.order)
+        most = per_replicate(variance / ((pricing.rmse - b) * (pricing.rmse + b)))  # the run's cap
         if most > KEY_PATHS // QMC_REPLICATES:
             note = f"needs {most:.3g} points per scrambling, more than the {KEY_PATHS // QMC_REPLICATES} a run indexes"
             return self.row(note, work)
-        expected = n_total // QMC_REPLICATES
+        expected = per_replicate(variance / ((pricing.rmse - b) * (pricing.rmse + b)), rate)
         return AccuracyAlternative(
             self.name,
             cost,
             dt=h,
             n_paths=(QMC_REPLICATES * most,),
             bias=own.bias_constant * h**own.order,  # E S(h) − S ≈ C h^p, the solver's
-            note=f"16 × {expected} points expected (variance ∝ N^−{rate:.2g}), at most 16 × {most}, κ = {kappa:.3g}",
+            note=f"16 × {expected} points expected (variance ∝ N^−{rate:.2g}), at most 16 × {most}, "
+            f"κ = {pilot.kappa:.3g}",
             pilot_work=work,
-            kappa=kappa,
+            kappa=pilot.kappa,
             estimator=self,
         )
 
-    def _points(self, pricing: Pricing, key, h: float, *, variance: float, max_points: int, wrt=()):
-        """Quasi-Monte Carlo at step ``h``, points doubled until the statistic's squared standard error is at most
-        ``variance`` (or ``max_points``), in the program of the driver whose direction numbers cover ``h`` and
-        :data:`QMC_FINER` halvings of the pilot's finest step: the run shares the pilot's program unless it is
-        finer still."""
-        m = pricing.system.noise_dim
-        steps_b = pricing.steps0 << min(pricing.pilot_levels - 1 + QMC_FINER, _finest(pricing))
-        return quasi_monte_carlo_to_variance(
-            pricing.system,
-            pricing.y0,
-            key,
-            t0=pricing.t0,
-            t1=pricing.t1,
-            dt=h,
-            solver=self.solver,
-            save=pricing.save,
-            statistic=pricing.statistic,
-            variance=variance,
-            max_points=max_points,
-            dimension=max(steps_b, round((pricing.t1 - pricing.t0) / h)) * m,
-            replicates=QMC_REPLICATES,
-            batching=pricing.batching,
-            wrt=wrt,
-            antithetic=self.antithetic,
+
+@dataclasses.dataclass(frozen=True)
+class MultilevelQuasiMonteCarlo(_AbstractQuasiMonteCarlo):
+    """Multilevel randomised quasi-Monte Carlo (:func:`~nhsde.statistics.multilevel_quasi_monte_carlo`, Giles &
+    Waterhouse 2009) with ``solver`` as :class:`QuasiMonteCarlo`, on levels ``h₀ … h₀ 2^{−L}`` fixed by the solver's
+    pilot: ``|C| h_L^p < ε``, the variance budget ``ε² − (|C| h_L^p)²``.
+
+    Pilot: every pilot level's coupled pair at ``n_q`` and ``2 n_q`` points per scrambling, the second timed for
+    ``κ``.  Level ``ℓ``'s variance ``a_ℓ N^{−β_ℓ}`` (``β_ℓ`` measured between the counts, clamped to ``[1, 2]``),
+    levels beyond the pilot's decaying at its finest rate (clamped to ``[1, 2]``) with its ``β``.  Points
+    ``N_ℓ = (λ β_ℓ a_ℓ / C_ℓ)^{1/(1 + β_ℓ)}`` (the least work ``Σ N_ℓ C_ℓ`` with ``Σ a_ℓ N_ℓ^{−β_ℓ}`` at the budget,
+    ``λ`` by bisection), powers of two; the cheapest ``L`` within the pilot program's Sobol' dimensions.  The run
+    doubles points where the variance per unit of work is largest until its own standard error meets the target,
+    each level at most its count at the Monte-Carlo rate (Giles's allocation, ``β = 1``)."""
+
+    solver: str | dfx.AbstractSolver = "euler"
+    weak_order: int | None = None
+    antithetic: bool = False
+    method: str = dataclasses.field(default="multilevel quasi-Monte Carlo", init=False, repr=False)
+    pilot_fold: ClassVar[int] = 97
+
+    def predict(self, pricing: Pricing) -> AccuracyAlternative:
+        own = pricing.pilot(self.candidate)
+        m = pricing.pilot_levels
+        pilot = self._pilot(pricing, pricing.h0, m)
+        if isinstance(pilot, tuple):
+            return self.row(*pilot)
+        rates = pilot.rates(pricing.statistic)
+        v2 = _level_variances(pilot.second)
+        decay = min(max(math.log2(v2[-2] / v2[-1]), 1.0), 2.0)
+        pairs = 2 if self.antithetic else 1
+        best: tuple[float, tuple[int, ...], tuple[int, ...], int] = (math.inf, (), (), 0)
+        for top in range(1, min(m - 1 + QMC_FINER, _finest(pricing)) + 1):
+            b = bias(own.bias_bound, pricing.h0 / 2**top, own.order)
+            if not b < pricing.rmse:
+                continue
+            budget = (pricing.rmse - b) * (pricing.rmse + b)
+            levels = [rates[min(ell, m - 1)] for ell in range(top + 1)]
+            levels = [(a * 2 ** (-decay * max(0, ell - m + 1)), beta) for ell, (a, beta) in enumerate(levels)]
+            costs = [pairs * level_cost(pricing.steps0, ell, False) for ell in range(top + 1)]
+            expected = [_power_of_two(n) for n in _allocate_at_rates(levels, costs, budget)]
+            mc = [a * (2 * pilot.n_q) ** -beta * 2 * pilot.n_q for a, beta in levels]  # per point, the MC rate
+            most = [max(e, _power_of_two(n)) for e, n in zip(expected, allocate(mc, costs, math.sqrt(2 * budget)))]
+            cost = QMC_REPLICATES * sum(n * c for n, c in zip(expected, costs)) * pilot.kappa
+            if cost < best[0] and max(most) <= KEY_PATHS // QMC_REPLICATES:
+                best = (cost, tuple(expected), tuple(most), top)
+        cost, expected, most, top = best
+        if not expected:
+            return self.row("no level count reaches the target within the Sobol' dimensions", pilot.work)
+        h_fine = pricing.h0 / 2**top
+        return AccuracyAlternative(
+            self.name,
+            cost,
+            dt=pricing.h0,
+            n_paths=tuple(QMC_REPLICATES * n for n in most),
+            bias=own.bias_constant * h_fine**own.order,
+            note=f"{top + 1} levels, 16 × {list(expected)} points expected, at most 16 × {list(most)}, "
+            f"κ = {pilot.kappa:.3g}",
+            pilot_work=pilot.work,
+            kappa=pilot.kappa,
+            estimator=self,
         )
 
-    def run(self, pricing: Pricing, plan: AccuracyAlternative) -> tuple[AbstractEstimate, float]:
-        """The points doubled until the standard error meets the target with the bias bound at the step,
-        ``SE² (1 + √(2/(R − 1))) ≤ ε² − (|C| h^p)²`` (a margin of one standard error of the variance estimate);
-        the plan's count, at the slowest rate, is the most.  With ``wrt``, the derivatives from the same points."""
-        own = pricing.pilots[self.candidate.label]
-        budget = pricing.rmse**2 - bias(own.bias_bound, plan.dt, own.order) ** 2
-        margin = 1 + math.sqrt(2 / (QMC_REPLICATES - 1))
-        per = plan.n_paths[0] // QMC_REPLICATES
-        res = self._points(pricing, pricing.run_key, plan.dt, variance=budget / margin, max_points=per, wrt=pricing.wrt)
-        return res, plan.bias
 
-    def kept_samples(self, plan: AccuracyAlternative) -> float:
-        pairs = 2 if self.antithetic else 1
-        return pairs * min(sum(plan.n_paths), RUN_LIMIT)  # one run's values at a time, reduced into sums
+def _allocate_at_rates(levels: list[tuple[float, float]], costs: list[float], budget: float) -> list[float]:
+    """Points ``N_ℓ = (λ β_ℓ a_ℓ / C_ℓ)^{1/(1 + β_ℓ)}`` with ``Σ a_ℓ N_ℓ^{−β_ℓ} = budget`` (module of
+    :class:`MultilevelQuasiMonteCarlo`), ``λ`` by bisection on its logarithm."""
+
+    def counts(log_lam: float) -> list[float]:
+        return [math.exp((log_lam + math.log(beta * a / c)) / (1 + beta)) for (a, beta), c in zip(levels, costs)]
+
+    def excess(log_lam: float) -> float:
+        return sum(a * n**-beta for (a, beta), n in zip(levels, counts(log_lam))) - budget
+
+    lo, hi = -200.0, 200.0
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if excess(mid) > 0 else (lo, mid)
+    return counts(hi)
 
 
 def _finest(pricing: Pricing) -> int:

@@ -362,12 +362,7 @@ def _adapt(
         levels.grow(level, BLOCK)
     moments = [levels.moments(level) for level in range(n_levels)]
     while True:
-        variances = [float(_pick(statistic, names, mm[2], mm[3])) for mm in moments]
-        while sum(variances) > eps**2 / 2:
-            worst = max(range(n_levels), key=lambda ell: variances[ell] / (levels.points[ell] * levels.cost(ell)))
-            levels.grow(worst, 2 * levels.points[worst])
-            moments[worst] = levels.moments(worst)
-            variances[worst] = float(_pick(statistic, names, moments[worst][2], moments[worst][3]))
+        _double(levels, moments, eps**2 / 2, None, statistic, names)
         means = np.stack([_pick(statistic, names, mm[0], mm[1]) for mm in moments])
         bias = float(bias_estimate(means, alpha))
         if bias <= eps / math.sqrt(2):
@@ -385,6 +380,21 @@ def _adapt(
         levels.grow(n_levels, BLOCK)
         moments.append(levels.moments(n_levels))
         n_levels += 1
+
+
+def _double(levels: _QmcLevels, moments: list, variance: float, most: Sequence[int] | None, statistic, names) -> None:
+    """Double the points of the level with the largest ``V̂_ℓ/(N_ℓ C_ℓ)`` (among those below ``most``, points per
+    scrambling per level) until ``Σ_ℓ V̂_ℓ ≤ variance``; ``moments`` (one per level) updated in place."""
+    n_levels = len(moments)
+    variances = [float(_pick(statistic, names, mm[2], mm[3])) for mm in moments]
+    while sum(variances) > variance:
+        open_levels = [ell for ell in range(n_levels) if most is None or levels.points[ell] < most[ell]]
+        if not open_levels:
+            return
+        worst = max(open_levels, key=lambda ell: variances[ell] / (levels.points[ell] * levels.cost(ell)))
+        levels.grow(worst, 2 * levels.points[worst])
+        moments[worst] = levels.moments(worst)
+        variances[worst] = float(_pick(statistic, names, moments[worst][2], moments[worst][3]))
 
 
 def _estimate(levels: _QmcLevels, moments, statistic: AbstractStatistic, alpha: float, watch: Stopwatch):
@@ -434,21 +444,23 @@ def quasi_monte_carlo_to_variance(
     save: Save,
     statistic: AbstractStatistic,
     variance: float,
-    max_points: int,
+    max_points: Sequence[int],
     dimension: int,
     replicates: int = 16,
     batching: Batching | None = None,
     wrt: tuple[str, ...] = (),
     antithetic: bool = False,
 ) -> MultilevelEstimate:
-    """Randomised quasi-Monte Carlo at the one step ``dt`` (level 0 of the module's levels): the points per
-    scrambling doubled from 64 until the squared standard error of ``statistic`` is at most ``variance``, or
-    ``max_points`` (a power of two) are done.  Every point count runs in the one compiled program of the driver's
-    ``dimension`` (≥ ``(t1 − t0)/dt × channels``; ``save`` keeps the per-path values); ``bias`` is ``nan`` (one
-    level); with parameter names ``wrt``, ``derivatives`` from the points' tangents; ``antithetic``: each point with
-    its reflection (as :func:`multilevel_quasi_monte_carlo`).  For the estimators' own checked
-    arguments: a quasi-Monte Carlo run that stops where it is accurate enough, unlike a count fixed in advance at
-    the Monte-Carlo rate."""
+    """Randomised quasi-Monte Carlo on the levels ``h = dt … dt 2^{1−L}`` of the module, ``L = len(max_points)``
+    (one level: plain quasi-Monte Carlo at ``dt``): 64 points per scrambling on every level, then the points of the
+    level with the most variance per unit of work doubled until the squared standard error of ``statistic`` is
+    at most ``variance``, or every level ``ℓ`` has ``max_points[ℓ]`` (powers of two).  Every point count runs in the
+    compiled programs of the driver's ``dimension`` (≥ the finest level's ``(t1 − t0)/h × channels``; ``save``
+    keeps the per-path values); ``bias`` is the levels' estimate (``nan`` for one level); with parameter names
+    ``wrt``, ``derivatives`` from the points' tangents; ``antithetic``: each point with its reflection (as
+    :func:`multilevel_quasi_monte_carlo`).  For the estimators' own checked arguments: a run that stops where it is
+    accurate enough, unlike counts fixed in advance at the Monte-Carlo rate, on levels fixed in advance (their
+    bias bounded by the estimator's pilot)."""
     watch = Stopwatch()
     levels = _QmcLevels(
         system,
@@ -466,11 +478,8 @@ def quasi_monte_carlo_to_variance(
         antithetic=antithetic,
     )
     assert save.names is not None and save.paths
-    points = min(BLOCK, max_points)
-    levels.grow(0, points)
-    moments = levels.moments(0)
-    while points < max_points and float(_pick(statistic, save.names, moments[2], moments[3])) > variance:
-        points *= 2
-        levels.grow(0, points)
-        moments = levels.moments(0)
-    return _estimate(levels, [moments], statistic, 2.0 if isinstance(solver, PlatenWeak2) else 1.0, watch)
+    for level, most in enumerate(max_points):
+        levels.grow(level, min(BLOCK, most))
+    moments = [levels.moments(level) for level in range(len(max_points))]
+    _double(levels, moments, variance, max_points, statistic, save.names)
+    return _estimate(levels, moments, statistic, 2.0 if isinstance(solver, PlatenWeak2) else 1.0, watch)
