@@ -748,13 +748,12 @@ def simulate(
         raise TypeError(
             f"progress_meter={meter!r}; expected a diffrax progress meter, e.g. diffrax.TqdmProgressMeter()."
         )
-    with (
-        watching(),  # Ctrl-C stops the compiled run within POLL_STEPS steps
-        checked_on_host() if plan.nonzero_checked else contextlib.nullcontext(),
-    ):
-        ts, sums, (n_failed, first_failed), failed, paths, unstable = _run(
-            system, needs, y0, key, _index(first_path), grid, about, plan, meter
-        )
+    with watching():  # Ctrl-C stops the compiled run within POLL_STEPS steps
+        # (only the run in the checked setting: the small programs after it are the same either way)
+        with checked_on_host() if plan.nonzero_checked else contextlib.nullcontext():
+            ts, sums, (n_failed, first_failed), failed, paths, unstable = _run(
+                system, needs, y0, key, _index(first_path), grid, about, plan, meter
+            )
         if is_concrete(sums, n_failed, unstable):  # one program for the statistics whatever devices ran the paths
             sums, n_failed, unstable = jax.tree_util.tree_map(_on_one_device, (sums, n_failed, unstable))
         moments = sums.statistics()
