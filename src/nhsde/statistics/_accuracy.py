@@ -25,10 +25,11 @@ differences.  For a target RMSE ``ε`` it predicts the work (path-steps) of
 - each of these with antithetic pairs (work doubled, the pair's variance);
 - a control variate, where :mod:`nhsde.statistics` provides one;
 - randomised quasi-Monte Carlo (:func:`quasi_monte_carlo`, with each solver, 16 scramblings of a power of two
-  paths each), where ``(t1 − t0)/h₀`` is a power of two and the driver is continuous: its variance
-  from a pilot of 8 scramblings, its error assumed to fall only as ``N^{−1/2}`` beyond it (so its predicted work
-  is an upper bound where it converges faster), its solver's bias bound, and its work converted to that solver's
-  plain path-steps by the measured ratio ``κ`` of its seconds per path-step to plain Monte Carlo's;
+  paths each), where ``(t1 − t0)/h₀`` is a power of two and the driver is continuous: its variance and the
+  rate ``N^{−β}`` at which it falls from a pilot at two point counts, its solver's bias bound, its run doubling
+  the points until its own standard error meets the target, and its work converted to that solver's plain
+  path-steps by the measured ratio ``κ`` of its seconds per path-step to plain Monte Carlo's (multilevel
+  quasi-Monte Carlo likewise, level by level, when given);
 
 runs the cheapest whose per-path values fit in memory (``_cost.py``; none fits: a
 ``ValueError`` with the size) and returns its value, standard error and bias estimate
@@ -232,9 +233,10 @@ def to_accuracy(
     - ``cost``: ``'path-steps'``, or ``'seconds'`` (path-steps times each solver's
       measured seconds per path-step from a second, compiled, pilot run).
     - Quasi-Monte Carlo applies where ``(t1 − t0)/dt`` is a power of two and the driver is continuous.  Its pilot
-      (8 scramblings of ``pilot_paths/8`` paths rounded down to a power of two, run twice to time it) predicts its
-      work from its variance at the Monte-Carlo rate ``N^{−1/2}``, an upper bound where it converges faster; its
-      work is counted in its solver's plain path-steps (times the measured cost ratio ``κ``, in the report's note).
+      (16 scramblings of ``pilot_paths/16`` points rounded down to a power of two, then twice as many, timed)
+      predicts its points from the rate at which its variance fell between the two counts (:class:`QuasiMonteCarlo`);
+      its work is counted in its solver's plain path-steps (times the measured cost ratio ``κ``, in the report's
+      note).
     - ``explore``: price every alternative.  By default (``False``) the first solver's pilot (among the estimators'
       solvers that step the system in its own calculus, where one does, the highest weak order) prices the
       estimators of that solver, and a further pilot (another
