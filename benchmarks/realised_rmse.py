@@ -11,7 +11,9 @@ the recorded reference ``BODY_REFERENCE`` whose own SE 6.6e-4 is accounted for) 
 ``y0``, the default coarsest step) it runs ``--keys`` keys ``jax.random.key(1000 + i)`` and records per key the
 value, SE, bias estimate, realised error, path-steps (pilots included), seconds (compiling included) and choice.
 Estimators (``--estimators``): ``plain-euler``, ``plain-weak2``, ``richardson-euler``, ``richardson-weak2``,
-``multilevel-euler``, ``multilevel-weak2``, ``multilevel-weak2-anti``, ``control-variate``, ``qmc`` (``weak2`` is
+``multilevel-euler``, ``multilevel-weak2``, ``multilevel-weak2-anti``, ``control-variate``, ``qmc``, ``qmc-weak2``,
+``qmc-anti`` (antithetic points), ``plain-heun2``, ``richardson-heun2``, ``multilevel-heun2``, ``qmc-heun2`` (Heun's
+method, the body's first pilot), ``mlqmc``, ``mlqmc-weak2`` (``MultilevelQuasiMonteCarlo``) (``weak2`` is
 ``PlatenWeak2(increments='gaussian')``).
 
 Per cell, over the runs that returned (float64):
@@ -61,6 +63,7 @@ import nhsde  # noqa: E402
 from nhsde.statistics import (  # noqa: E402
     ControlVariate,
     Multilevel,
+    MultilevelQuasiMonteCarlo,
     PlainMonteCarlo,
     QuasiMonteCarlo,
     Richardson,
@@ -84,6 +87,14 @@ def estimator_objects():
         "multilevel-weak2-anti": Multilevel(GAUSS, antithetic=True),
         "control-variate": ControlVariate(),
         "qmc": QuasiMonteCarlo(),
+        "qmc-weak2": QuasiMonteCarlo(GAUSS),
+        "qmc-anti": QuasiMonteCarlo(antithetic=True),
+        "plain-heun2": PlainMonteCarlo("heun2"),
+        "richardson-heun2": Richardson("heun2"),
+        "multilevel-heun2": Multilevel("heun2"),
+        "qmc-heun2": QuasiMonteCarlo("heun2"),
+        "mlqmc": MultilevelQuasiMonteCarlo(),
+        "mlqmc-weak2": MultilevelQuasiMonteCarlo(GAUSS),
     }
 
 

@@ -294,9 +294,28 @@ def test_every_alternative_on_the_ball():
     ≥ 89 %)."""
     eps = 0.05 * K_XX
     r = to_accuracy(BALL.build(), Y0, jax.random.key(3), t1=1.0, statistic=("cov", "x", "x"), rmse=eps, explore=True)
-    assert len(r.alternatives) == 14 and all(math.isfinite(a.cost) for a in r.alternatives), r.report()
+    assert len(r.alternatives) == 15 and all(math.isfinite(a.cost) for a in r.alternatives), r.report()
     assert {p.solver for p in r.pilot} == {"euler", "weak2-gaussian"}
     assert r.choice == "control variate, euler" and abs(r.value()[0] - K_XX) <= 3 * eps
+
+
+def test_alternatives_of_several_solvers_are_ranked_by_seconds():
+    """Two solvers priced: ``cost='auto'`` ranks by seconds, each alternative's path-steps times its solver's
+    seconds per path-step, from one more (timed, counted) run of each solver's pilot; one solver: by path-steps,
+    no pilot timed (``test_reaches_the_requested_rmse_on_the_ball``)."""
+    eps = 0.1 * K_XX
+    both = dict(estimators=(PlainMonteCarlo("euler"), PlainMonteCarlo(nhsde.PlatenWeak2(increments="gaussian"))))
+    r = to_accuracy(BALL.build(), Y0, jax.random.key(3), rmse=eps, explore=True, **(FAST | both))
+    assert {p.solver for p in r.pilot} == {"euler", "weak2-gaussian"}, r.report()
+    rates = {p.solver: p.seconds_per_path_step for p in r.pilot}
+    assert all(rate > 0 for rate in rates.values()), rates
+    for a in r.alternatives:
+        assert a.seconds == pytest.approx(a.cost * rates[a.estimator.candidate.label], rel=1e-12), a
+    chosen = next(a for a in r.alternatives if a.name == r.choice)
+    assert chosen.seconds == min(a.seconds for a in r.alternatives) and r.predicted.seconds == chosen.seconds
+    # each timed pilot ran twice: its work is twice one run's (1024 paths at 4 + 8 + 16 steps)
+    assert all(p.work == 2 * 1024 * 28 for p in r.pilot), [p.work for p in r.pilot]
+    assert r.pilot_cost.path_steps == sum(p.work for p in r.pilot) and "s), " in r.reason
 
 
 def test_a_loose_target_is_answered_after_one_compiled_program():

@@ -33,7 +33,7 @@ from ._extrapolation import extrapolate
 from ._multilevel import MultilevelEstimate, multilevel_monte_carlo
 from ._multilevel_qmc import RUN_LIMIT, quasi_monte_carlo_to_variance
 from ._paths import KEY_PATHS, RUN_PATHS, solve_paths
-from ._pilot import Candidate, candidate, run_pilot
+from ._pilot import Candidate, candidate, pilot_rate, run_pilot
 from ._qmc import MAX_DIMENSION
 from ._report import AccuracyAlternative, PilotSummary
 from ._variance_reduction import check_reflectable
@@ -81,20 +81,36 @@ class Pricing:
             self.pilots[cand.label] = run_pilot(
                 self.system,
                 self.y0,
-                fold_key(self.pilot_key, self.pilot_keys[cand.label]),
+                self._pilot_key(cand),
                 cand,
-                t0=self.t0,
-                t1=self.t1,
-                h0=self.h0,
-                levels=self.pilot_levels,
-                n_paths=self.pilot_paths,
-                save=self.save,
-                anti=cand.label in self.antithetic_pilots,
-                batching=self.batching,
                 statistic=self.statistic,
                 timed=self.timed,
+                **self._pilot_options(cand),
             )
         return self.pilots[cand.label]
+
+    def time_pilot(self, cand: Candidate) -> None:
+        """Give ``cand``'s pilot its measured seconds per path-step (one more run of its compiled programs, its work
+        added to the pilot's), where it has none."""
+        pilot = self.pilots[cand.label]
+        if math.isnan(pilot.seconds_per_path_step):
+            rate, work = pilot_rate(self.system, self.y0, self._pilot_key(cand), cand, **self._pilot_options(cand))
+            self.pilots[cand.label] = dataclasses.replace(pilot, seconds_per_path_step=rate, work=pilot.work + work)
+
+    def _pilot_key(self, cand: Candidate):
+        return fold_key(self.pilot_key, self.pilot_keys[cand.label])
+
+    def _pilot_options(self, cand: Candidate) -> dict[str, Any]:
+        return dict(
+            t0=self.t0,
+            t1=self.t1,
+            h0=self.h0,
+            levels=self.pilot_levels,
+            n_paths=self.pilot_paths,
+            save=self.save,
+            anti=cand.label in self.antithetic_pilots,
+            batching=self.batching,
+        )
 
     def run_options(self, keep_paths: bool = True, tangents: bool = True) -> dict[str, Any]:
         """The options every run shares: ``save`` without per-path values where the estimator keeps none, and the

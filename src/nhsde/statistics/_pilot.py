@@ -21,7 +21,7 @@ from ._estimate import AbstractStatistic
 from ._paths import coupled_paths, coupling_solver, paired_moments
 from ._report import PilotSummary
 
-__all__ = ["Candidate", "candidate", "pick_moments", "run_pilot"]
+__all__ = ["Candidate", "candidate", "pick_moments", "pilot_rate", "run_pilot"]
 
 
 # --- the statistic --------------------------------------------------------------------------------------------
@@ -74,7 +74,8 @@ def candidate(solver: str | dfx.AbstractSolver, weak_order: int | None = None) -
 # --- the pilot --------------------------------------------------------------------------------------------------
 
 
-def run_pilot(system, y0, key, cand: Candidate, *, t0, t1, h0, levels, n_paths, save, anti, batching, statistic, timed):
+def _pilot_paths(system, y0, key, cand: Candidate, *, t0, t1, h0, levels, n_paths, save, anti, batching):
+    """The pilot's per-path values (``coupled_paths``) and its work in path-steps."""
     dts = tuple(h0 / 2**ell for ell in range(levels))
     steps0 = round((t1 - t0) / h0)
     opts: dict[str, Any] = dict(
@@ -82,14 +83,25 @@ def run_pilot(system, y0, key, cand: Candidate, *, t0, t1, h0, levels, n_paths, 
     )
     paths, _ = coupled_paths(system, y0, key, n_paths=n_paths, antithetic=anti, **opts)
     jax.block_until_ready(paths)
-    n_sys = 2 if anti else 1
-    work = float(n_paths * n_sys * sum(steps0 * 2**ell for ell in range(levels)))
+    return paths, float(n_paths * (2 if anti else 1) * sum(steps0 * 2**ell for ell in range(levels)))
+
+
+def pilot_rate(system, y0, key, cand: Candidate, **options) -> tuple[float, float]:
+    """``(seconds per path-step, path-steps)`` of one more run of ``cand``'s pilot (``run_pilot``'s ``options``),
+    compiled by the pilot: its programs' own speed, for comparing solvers whose path-steps cost differently."""
+    start = time.perf_counter()
+    _, work = _pilot_paths(system, y0, fold_key(key, 1), cand, **options)
+    return (time.perf_counter() - start) / work, work
+
+
+def run_pilot(system, y0, key, cand: Candidate, *, statistic, timed, **options):
+    paths, work = _pilot_paths(system, y0, key, cand, **options)
+    levels, n_paths, anti, h0, save = (options[k] for k in ("levels", "n_paths", "anti", "h0", "save"))
+    dts = tuple(h0 / 2**ell for ell in range(levels))
     rate = math.nan
     if timed:  # compiled now: time a second run of the same programs
-        start = time.perf_counter()
-        jax.block_until_ready(coupled_paths(system, y0, fold_key(key, 1), n_paths=n_paths, antithetic=anti, **opts))
-        rate = (time.perf_counter() - start) / work  # one run's seconds over one run's work
-        work *= 2
+        rate, more = pilot_rate(system, y0, key, cand, **options)
+        work += more
     plain, refl = paths[:levels], paths[levels:]
     if not all(np.all(np.isfinite(p)) for p in paths):
         raise ValueError(
