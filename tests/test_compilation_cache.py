@@ -7,12 +7,9 @@ import pytest
 from jax.experimental.compilation_cache import compilation_cache
 
 import nhsde
-from nhsde._params import checked_on_host
-from nhsde._simulate import forward_only
 from nhsde.runs import main
 
 VARIABLE = "NHSDE_COMPILATION_CACHE"
-SINGULAR = "the derivative with respect to a noise intensity nu at nu = 0 is singular"
 
 
 @pytest.fixture(autouse=True)
@@ -91,65 +88,24 @@ def test_the_solve_itself_is_cached(tmp_path, caplog):
     assert misses and not [m for m in misses if "'jit__run'" in m], misses
 
 
-def test_a_forward_mode_derivative_in_nu_at_concrete_nu_is_cached(tmp_path, caplog):
-    """The estimators' ν-tangents (forward mode of concrete parameters, ``forward_only``): no differentiated
-    parameter is 0, checked on the host, so √ν's derivative carries no host callback and the solve enters the
-    cache; its next compilation (as in a new process) is not a persistent-cache miss."""
-    nhsde.enable_compilation_cache(tmp_path)
-    scene = nhsde.scenes.BallOnVibratingPlane()
-    system = scene.build()
-
-    def ask():
-        def k_xx(eps, nu):
-            p = system.replace_params(eps=eps, nu=nu)
-            ens = nhsde.simulate(p, scene.initial_state(), jax.random.key(0), n_paths=64, t1=1.0, dt=0.1)
-            return ens.cov[-1, 0, 0]
-
-        with forward_only():
-            return jax.jacfwd(k_xx, argnums=(0, 1))(system.params.eps, system.params.nu)
-
-    d_eps, d_nu = ask()
-    assert jnp.isfinite(d_eps) and jnp.isfinite(d_nu) and d_nu > 0
-    assert [p.name for p in tmp_path.iterdir() if p.name.startswith("jit__run-")], sorted(tmp_path.iterdir())
-    jax.clear_caches()
-    with jax.explain_cache_misses(True), caplog.at_level("WARNING", logger="jax"):
-        again = ask()
-    assert jnp.allclose(again[1], d_nu)
-    messages = [r.getMessage() for r in caplog.records]
-    assert not [m for m in messages if "'jit__run'" in m and ("MISS" in m or "Not writing" in m)], messages
-
-
-def test_a_program_traced_with_host_checked_parameters_is_cached_and_never_reused_without(tmp_path):
-    """In ``checked_on_host`` √ν's derivative has no run-time check (the program is cached); the same function traced
-    outside (traced ν, checked by no one) gets its own program, with the check, even after the first."""
-    nhsde.enable_compilation_cache(tmp_path)
-    derivative = jax.jit(jax.grad(nhsde.sqrt_intensity))
-    with checked_on_host():
-        assert float(derivative(4.0)) == 0.25
-    assert [p.name for p in tmp_path.iterdir() if "sqrt_intensity" in p.name], [p.name for p in tmp_path.iterdir()]
-    with pytest.raises(Exception, match=SINGULAR):
-        derivative(0.0)
-    assert float(derivative(4.0)) == 0.25
-
-
-def test_the_pilot_is_timed_once_per_cache_folder(tmp_path, monkeypatch, capsys):
-    """The command's estimate comes from a timed pilot; its seconds are kept in the cache folder, so the same run
-    again prints the same estimate without simulating the pilot (whose programs a warm process would load)."""
-    from nhsde.runs import _cli
-
+def test_the_main_jobs_sensitivities_are_cached_and_found_again(tmp_path, monkeypatch, capsys, caplog):
+    """The README's job (``nhsde simulate ball-on-vibrating-plane``, here shorter) runs ``moment_sensitivities``: its
+    parameters are concrete, checked on the host, so its program (the solve with its ε and ν tangents) has no host
+    callback, is written to the cache, and its next compilation (as in a new process) is found there."""
     monkeypatch.setenv(VARIABLE, str(tmp_path))
-    args = ["simulate", "ball-on-vibrating-plane", "--paths", "4096", "--t1", "1", "--dt", "0.05", "--save-points", "2"]
-    timed = []
-    real = _cli._timed_pilot
-    monkeypatch.setattr(_cli, "_timed_pilot", lambda *a: timed.append(a) or real(*a))
+    args = ["simulate", "ball-on-vibrating-plane", "--paths", "64", "--t1", "1", "--dt", "0.05", "--save-points", "3"]
+    jax.clear_caches()  # as a new process: nothing compiled by an earlier test is reused from memory
     assert main(args) == 0
-    first = capsys.readouterr().out.splitlines()[0]
-    assert len(timed) == 1 and "roughly" in first and (tmp_path / _cli.PILOTS).is_file()
-    assert main(args) == 0
-    assert capsys.readouterr().out.splitlines()[0] == first and len(timed) == 1
-    assert main([*args[:3], "8192", *args[4:]]) == 0  # the same pilot: twice the paths, twice the estimate
-    assert len(timed) == 1
-    (tmp_path / _cli.PILOTS).write_text("{not json")  # a damaged file is measured again and rewritten
-    assert main(args) == 0 and len(timed) == 2
-    monkeypatch.setenv(VARIABLE, "off")  # no cache folder: every process times its pilot
-    assert main(args) == 0 and len(timed) == 3
+    first = capsys.readouterr().out
+    written = [p.name for p in tmp_path.iterdir() if p.name.startswith("jit__sensitivities-")]
+    assert len(written) == 1, sorted(p.name for p in tmp_path.iterdir())
+    jax.clear_caches()
+    events = _hits()
+    with jax.explain_cache_misses(True), caplog.at_level("WARNING", logger="jax"):
+        assert main(args) == 0
+    assert capsys.readouterr().out == first
+    messages = [r.getMessage() for r in caplog.records]
+    assert not [m for m in messages if "'jit__sensitivities'" in m and ("MISS" in m or "Not writing" in m)], messages
+    requests = events.count("/jax/compilation_cache/compile_requests_use_cache")
+    assert requests > 0 and events.count("/jax/compilation_cache/cache_hits") == requests
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith("jit__sensitivities-")] == written

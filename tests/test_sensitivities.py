@@ -4,6 +4,7 @@ Against ``jax.jacfwd`` of ``simulate`` (same key, to rounding), against the anal
 covariance (S0 (3.1)) within the reported error, and the reported errors against the spread over independent keys.
 """
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -132,3 +133,47 @@ def test_failed_paths_are_excluded_from_values_and_derivatives():
 def test_bad_input_names_the_argument(kwargs, error, match):
     with pytest.raises(error, match=match):
         moment_sensitivities(SYSTEM, Y0, jax.random.key(0), n_paths=N, t1=T1, dt=DT, **kwargs)
+
+
+RAISED = (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError)  # eqx.filter_jit and eager; jax.jit
+SMALL = dict(wrt=("eps", "nu"), n_paths=64, t1=1.0, save=nhsde.Save(names=("x", "u_x"), n=3))
+
+
+def d_cov(system, y0, dt=0.1):
+    """A plain call's derivative; under the user's jit the parameters are traced and the checks are the program's."""
+    return moment_sensitivities(system, y0, jax.random.key(0), dt=dt, **SMALL).d_cov
+
+
+def test_a_parameter_out_of_range_is_refused_plain_and_under_jit():
+    """A plain call checks the ranges on the host, in the state's precision (a radius of 1e-50 is 0 in float32);
+    under the user's jit the program checks them with the message naming the parameter."""
+    y0 = jnp.zeros(4, jnp.float32)
+    tiny = BallOnVibratingPlane(eps=EPS, nu=NU, radius=1e-50).build()
+    with pytest.raises(ValueError, match=r"parameter radius=0\.0 is not allowed; radius must be finite and > 0"):
+        d_cov(tiny, y0)
+    with pytest.raises(RAISED, match="parameter eps must be finite and ≥ 0"):
+        jax.jit(lambda eps: d_cov(SYSTEM.replace_params(eps=eps), Y0[0]))(-1.0)
+
+
+def test_an_unstable_step_is_refused_plain_and_under_jit():
+    """ε·dt = 1 is Euler's stability limit on the ball (inclusive): a plain call refuses it before the run with
+    simulate's plain message; under the user's jit the run's check says the same (the stability limit, the fix)."""
+    unstable = SYSTEM.replace_params(eps=10.0)
+    with pytest.raises(ValueError, match=r"dt=0\.1: solver 'euler' is unstable .* stability limit") as plain:
+        d_cov(unstable, Y0[0])
+    assert "solver='exponential'" in str(plain.value)
+    with pytest.raises(RAISED, match="stability limit") as traced:
+        jax.jit(lambda eps: d_cov(SYSTEM.replace_params(eps=eps), Y0[0]))(10.0)
+    assert "solver='exponential'" in str(traced.value)
+    with pytest.warns(nhsde.StationaryVarianceWarning, match=r"stationary variance 2× the exact one"):
+        d_cov(SYSTEM.replace_params(eps=5.0), Y0[0])  # ε·dt = 1/2: the plain call's warning, with the step
+
+
+def test_moment_sums_that_overflow_are_refused_plain_and_under_jit():
+    """float32 paths at ±3e9 (their fourth powers finite, so no path fails) whose fourth-moment sums about the first
+    path overflow: never a silent inf in the standard errors, plain or under jit."""
+    y0 = jnp.zeros((64, 4), jnp.float32).at[:, 0].set(jnp.where(jnp.arange(64) % 2 == 0, 3e9, -3e9))
+    with pytest.raises(nhsde.SimulationError, match="moment_sensitivities: the moment sums overflow"):
+        d_cov(SYSTEM, y0, dt=0.05)
+    with pytest.raises(RAISED, match="the moment sums overflow"):
+        jax.jit(lambda eps: d_cov(SYSTEM.replace_params(eps=eps), y0, dt=0.05))(EPS)

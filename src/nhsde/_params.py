@@ -222,6 +222,11 @@ def checked_on_host():
     program traced here is never reused outside, where traced parameters need their checks.  As with the
     estimators' forward mode, ``simulate`` then leaves the stationary-variance warning of traced parameters to the
     caller (``stable_step`` and the warning are the host's, on the concrete values).
+
+    ``simulate`` called here (by ``moment_sensitivities``, whose jit traces it with concrete parameters) also leaves
+    out the checks of its run's outcome: the caller checked the step's stability on the host before the run
+    (``_simulate._check_linear_stability``) and checks too few paths and overflow on the host after it, so
+    ``simulate`` returns its traced outputs unchecked.
     """
     with _CHECKED_ON_HOST(True):
         yield

@@ -56,7 +56,7 @@ from ._solvers import SOLVERS, ExponentialEuler, SolverNeeds, solver_needs
 from ._system import StochasticSystem
 from ._weak import WeakIncrement
 
-__all__ = ["MAX_PATH_INDEX", "MIN_PATHS", "simulate", "stable_step"]
+__all__ = ["MAX_PATH_INDEX", "MIN_PATHS", "check_on_host", "simulate", "stable_step"]
 
 _FORWARD_ONLY = contextvars.ContextVar("nhsde_forward_only", default=False)
 
@@ -462,7 +462,9 @@ def _work_dtype(dtype):
     return jnp.float64 if jnp.finfo(dtype).bits > 32 else jnp.float32
 
 
-def _check_linear_stability(system: StochasticSystem, needs: SolverNeeds, dt: float, dtype) -> None:
+def _check_linear_stability(
+    system: StochasticSystem, needs: SolverNeeds, dt: float, dtype, stacklevel: int = 3
+) -> None:
     """Refuse a step at which the solver does not damp the declared linear drift (friction) that the exact flow
     damps, and warn where its stationary variance there is off by more than 10 %.
 
@@ -486,8 +488,21 @@ def _check_linear_stability(system: StochasticSystem, needs: SolverNeeds, dt: fl
             )
         if abs(float(off) - 1) > 0.1 and not _PRICED_STEPS.get():
             warnings.warn(
-                _variance_message(system, needs, dt, float(off), work), StationaryVarianceWarning, stacklevel=3
+                _variance_message(system, needs, dt, float(off), work), StationaryVarianceWarning, stacklevel=stacklevel
             )
+
+
+def check_on_host(system: StochasticSystem, y0, *, n_paths: int, solver: str | dfx.AbstractSolver, dt: float):
+    """The checks a plain :func:`simulate` of ``system`` makes before its run, for a caller that traces ``simulate``
+    with concrete parameters made tangents (``moment_sensitivities``, in :func:`~nhsde._params.checked_on_host`):
+    ``y0``, the parameters' ranges in the state's precision, the step's stability on the declared linear drift (the
+    same messages, and the stationary-variance warning, pointing at the caller's caller).  Returns ``y0`` checked.
+    """
+    needs = solver_needs(solver, system)
+    y0 = _check_y0(system, y0, n_paths)
+    check_ranges(cast_floats(system.params, y0.dtype))  # a radius of 1e-50 is 0 in float32
+    _check_linear_stability(system, needs, dt, y0.dtype, stacklevel=4)
+    return y0
 
 
 def stable_step(system: StochasticSystem, solver: str | dfx.AbstractSolver, dt: float) -> bool:
@@ -691,6 +706,10 @@ def simulate(
     chunk_size = min(check_number("chunk_size", chunk_size, integer=True), BLOCK * math.ceil(n_paths / BLOCK))
     check_ranges(cast_floats(system.params, y0.dtype))  # a radius of 1e-50 is 0 in float32
     _check_linear_stability(system, needs, step, y0.dtype)
+    # Called in `checked_on_host` (by `moment_sensitivities`, whose parameters are concrete): the caller checked the
+    # parameters' ranges and the step's stability on the host, and checks the run's outcome there itself, so a traced
+    # run carries neither check (host callbacks, which keep its program out of the persistent compilation cache).
+    outcome_by_caller = parameters_checked_on_host()
     if needs.interpretation not in ("any", system.interpretation):
         system = system.converted(needs.interpretation)
     devices = tuple(jax.devices()) if batching.devices is None else tuple(batching.devices)
@@ -736,7 +755,8 @@ def simulate(
         devices=devices,
         checkpoint=bool(checkpoint),
         raise_on_failure=on_failure == "raise",
-        traced_stability=_checks_linear(system, needs) and not is_concrete(system.params),
+        # in `checked_on_host` the caller checked the step's stability on the host (`_check_linear_stability`)
+        traced_stability=_checks_linear(system, needs) and not is_concrete(system.params) and not outcome_by_caller,
         poll=n_paths * n_steps * system.state_dim > POLL_ABOVE,
         # forward mode of concrete values (the estimators' tangents): the primal values were checked when built
         params_checked=is_concrete(system.params) or _FORWARD_ONLY.get() or parameters_checked_on_host(),
@@ -757,13 +777,19 @@ def simulate(
         if is_concrete(sums, n_failed, unstable):  # one program for the statistics whatever devices ran the paths
             sums, n_failed, unstable = jax.tree_util.tree_map(_on_one_device, (sums, n_failed, unstable))
         moments = sums.statistics()
-        result = _result(moments, sums.count, n_failed, unstable, plan.raise_on_failure)
+        outputs = (*moments, failed, paths)
+        if outcome_by_caller and not is_concrete(moments):
+            result = None  # unchecked: the caller checks the outcome (too few paths, overflow) on the host
+        else:
+            result = _result(moments, sums.count, n_failed, unstable, plan.raise_on_failure)
         if not under_trace():
             jax.block_until_ready(moments)
-    details = ""
-    if is_concrete(n_failed) and int(n_failed) > 0:
-        details = f"{int(n_failed)} of {n_paths} paths failed, first path {int(first_failed)}: "
-    mean, cov, mean_se, cov_se, failed, paths = check_result((*moments, failed, paths), result, "simulate", details)
+    if result is not None:
+        details = ""
+        if is_concrete(n_failed) and int(n_failed) > 0:
+            details = f"{int(n_failed)} of {n_paths} paths failed, first path {int(first_failed)}: "
+        outputs = check_result(outputs, result, "simulate", details)
+    mean, cov, mean_se, cov_se, failed, paths = outputs
     roles = tuple(
         system.layout.roles[system.layout.index(n)] if n in system.layout.names else "observable" for n in names
     )

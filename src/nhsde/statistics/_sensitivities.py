@@ -27,6 +27,7 @@ unlike in ``K`` itself, where ``E F = 0`` makes it second order.
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Sequence
 from typing import Literal
 
@@ -40,9 +41,9 @@ from jaxtyping import Array, Bool, Float, Int
 from .._ensemble import AbstractMoments, Ensemble, Save, check_result, covariance_variance, failure_result
 from .._interrupt import watching
 from .._misc import is_concrete, under_trace
-from .._options import AbstractSteps, Batching
-from .._params import AbstractParameters
-from .._simulate import simulate
+from .._options import AbstractSteps, Batching, FixedSteps
+from .._params import AbstractParameters, checked_on_host
+from .._simulate import check_on_host, simulate
 from .._system import StochasticSystem
 
 __all__ = ["Sensitivities", "moment_sensitivities"]
@@ -169,7 +170,32 @@ def _sensitivities(system: StochasticSystem, wrt: tuple[str, ...], values, y0, k
 
     tangents, ens = jax.jacfwd(per_path, argnums=tuple(range(len(wrt))), has_aux=True)(*values)
     assert ens.paths is not None and ens.failed is not None  # Save(paths=True)
-    return ens, *_statistics(ens.paths, tangents, ens.failed)
+    moments, d_moments, count, n_failed, failed = _statistics(ens.paths, tangents, ens.failed)
+    # simulate's moments (checked by simulate itself unless in `checked_on_host`), these and their derivatives
+    statistics = (ens.mean, ens.cov, ens.mean_se, ens.cov_se, *moments, *d_moments)
+    overflow = ~jnp.all(jnp.stack([jnp.all(jnp.isfinite(m)) for m in statistics]))
+    return ens, moments, d_moments, count, n_failed, failed, overflow
+
+
+def _step_checked_here(system: StochasticSystem, y0, values, dt, steps) -> float | None:
+    """The step, where the run's checks can be made on the host, else ``None``.
+
+    On the host: a plain call (nothing traced) in which no differentiated parameter is 0 (√ν's derivative is finite
+    there).  Its checks are then made by the caller before the run, and the run is traced in
+    :func:`~nhsde._params.checked_on_host`: no host callback in the program, which enters JAX's persistent
+    compilation cache.  Where the step is not given as ``simulate`` takes it, ``None``: ``simulate`` refuses it.
+    """
+    if under_trace() or not is_concrete(system.params, values, y0):
+        return None  # traced: the checks stay in the program (`eqx.error_if`), with the same messages
+    if not all(bool(np.all(np.asarray(v) != 0)) for v in values):
+        return None  # a derivative at ν = 0 is singular: the program's check raises it
+    if steps is None:
+        if dt is None:
+            return None
+        steps = FixedSteps(dt)  # a bad step raises here as in simulate
+    elif dt is not None or not isinstance(steps, AbstractSteps):
+        return None
+    return float(steps.dt)
 
 
 def moment_sensitivities(
@@ -232,13 +258,20 @@ def moment_sensitivities(
         first_path=first_path,
         progress_meter=progress_meter,
     )
+    step = _step_checked_here(system, y0, values, dt, steps)
+    if step is not None:
+        # simulate's checks, made now on the concrete parameters (its run, traced with them as tangents, cannot):
+        # y0, the ranges in the state's precision and the step's stability (its plain call's messages and warning);
+        # too few paths and overflow are checked below, from the run's counts and statistics
+        y0 = check_on_host(system, y0, n_paths=n_paths, solver=solver, dt=step)
     with watching():  # Ctrl-C stops the compiled run
-        out = _sensitivities(system, wrt, values, y0, key, options)
+        with checked_on_host() if step is not None else contextlib.nullcontext():
+            out = _sensitivities(system, wrt, values, y0, key, options)
         if not under_trace():
             jax.block_until_ready(out)
-    ens, moments, d_moments, count, n_failed, failed = out
+    ens, moments, d_moments, count, n_failed, failed, overflow = out
     result = failure_result(
-        unstable=False, n_failed=n_failed, n_used=count, raise_on_failure=on_failure == "raise", overflow=False
+        unstable=False, n_failed=n_failed, n_used=count, raise_on_failure=on_failure == "raise", overflow=overflow
     )
     details = ""
     if is_concrete(n_failed) and int(n_failed) > 0:
