@@ -7,12 +7,13 @@ differentiable in every physical parameter; :mod:`nhsde.fit` estimates parameter
 and :mod:`nhsde.runs` runs resumable files from the command line.
 """
 
+import importlib
 import importlib.metadata
+from typing import TYPE_CHECKING
 
 from . import (
     analysis as analysis,
     bodies as bodies,
-    fit as fit,
     mechanics as mechanics,
     noise as noise,
     scenes as scenes,
@@ -41,7 +42,6 @@ from ._params import (
 )
 from ._simulate import simulate as simulate
 from ._solvers import SOLVERS as SOLVERS, ExponentialEuler as ExponentialEuler
-from ._sweep import sweep as sweep
 from ._system import StateLayout as StateLayout, StochasticSystem as StochasticSystem
 from ._weak import (
     GaussianWeakIncrement as GaussianWeakIncrement,
@@ -56,3 +56,25 @@ from ._work_precision import (
 )
 
 __version__ = importlib.metadata.version("nhsde")
+
+if TYPE_CHECKING:
+    from . import fit as fit
+    from ._sweep import sweep as sweep
+
+_LAZY = {"fit": ("nhsde.fit", None), "sweep": ("nhsde._sweep", "sweep")}
+"""Imported when first used (``nhsde.fit``, ``from nhsde import sweep``): optax and xarray with pandas take about
+0.4 s each to import, which a process that only simulates need not spend."""
+
+
+def __getattr__(name: str):
+    if name not in _LAZY:
+        raise AttributeError(f"module 'nhsde' has no attribute {name!r}")
+    module, attribute = _LAZY[name]
+    value = importlib.import_module(module)
+    value = value if attribute is None else getattr(value, attribute)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_LAZY})

@@ -48,14 +48,13 @@ import dataclasses
 import functools
 import warnings
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 from jaxtyping import Array, PRNGKeyArray
 
 from .._ensemble import Save
@@ -63,6 +62,10 @@ from .._options import Batching, FixedSteps
 from .._simulate import simulate
 from .._system import StochasticSystem
 from ..statistics import moment_sensitivities, normal_approximation
+
+if TYPE_CHECKING:
+    import optax  # imported where a fit runs: a process that only simulates need not spend its import time
+
 from ._observations import (
     Observations,
     gaussian_statistic_covariance,
@@ -321,6 +324,8 @@ class _Problem(eqx.Module):
 
 @eqx.filter_jit
 def _step(phi, state, problem: _Problem, optimizer, reuse: bool):
+    import optax
+
     if reuse:  # line-search optimizers keep the value and gradient at the accepted point
         value, grad = optax.value_and_grad_from_state(problem.loss)(phi, state=state)
     else:
@@ -347,6 +352,8 @@ def _statistics_jacobian(theta, problem: _Problem):
 
 @functools.cache
 def _lbfgs():
+    import optax
+
     return optax.lbfgs()
 
 
@@ -526,6 +533,8 @@ def estimate(
         vary=vary,
         lower=lower,
     )
+    import optax
+
     given_optimizer = optimizer
     optimizer = _lbfgs() if optimizer is None else optax.with_extra_args_support(optimizer)
     phi = jnp.asarray([t if lo is None else np.log(t - lo) for t, lo in zip(theta0, lower)], dtype)
