@@ -181,8 +181,9 @@ def test_cli_run_where_every_path_overflows_prints_one_line(tmp_path):
     out = subprocess.run(command, capture_output=True, text=True, env=env, cwd=tmp_path, timeout=300)
     assert out.returncode == 1, out.stderr
     assert out.stderr.strip().splitlines() == [
-        "nhsde simulate: fewer than 4 paths succeeded; statistics and their standard errors need ≥ 4: try a smaller "
-        "dt or a stiffer-stable solver."
+        "nhsde simulate: moment_sensitivities: 64 of 64 paths failed (a non-finite state or tangent, or a solver "
+        "error): fewer than 4 paths succeeded; statistics and their standard errors need ≥ 4: try a smaller dt or a "
+        "stiffer-stable solver."
     ]
 
 
