@@ -6,27 +6,16 @@ is tests/test_compilation_cache.py."""
 import jax
 import jax.numpy as jnp
 import pytest
-from jax.experimental.compilation_cache import compilation_cache
+
+# the public tests' autouse fixture (JAX's global cache settings put back after each test) applies here too
+from test_compilation_cache import VARIABLE, _restore_jax_cache_settings  # noqa: F401
 
 import nhsde
 from nhsde._params import checked_on_host
 from nhsde._simulate import forward_only
 from nhsde.runs import _cli, main
 
-VARIABLE = "NHSDE_COMPILATION_CACHE"
 SINGULAR = "the derivative with respect to a noise intensity nu at nu = 0 is singular"
-
-
-@pytest.fixture(autouse=True)
-def _restore_jax_cache_settings():
-    """Each test changes JAX's global cache settings; put them back (no cache, as conftest.py leaves it)."""
-    names = ("jax_persistent_cache_min_compile_time_secs", "jax_persistent_cache_min_entry_size_bytes")
-    before = {name: getattr(jax.config, name) for name in names}
-    yield
-    compilation_cache.set_cache_dir(None)
-    compilation_cache.reset_cache()
-    for name, value in before.items():
-        jax.config.update(name, value)
 
 
 def test_a_forward_mode_derivative_in_nu_at_concrete_nu_is_cached(tmp_path, caplog):

@@ -276,10 +276,8 @@ def _sqrt_intensity_jvp(primals, tangents):
     zero = nu == 0
     if parameters_checked_on_host():
         # no differentiated parameter is 0 (checked on the host, no host callback in the program); a ν computed
-        # from them that is 0 anyway (the leaf check cannot see it) gives a nan derivative where it moves (a path
-        # failure, reported), 0 where its tangent is 0 (ν does not depend on the direction)
+        # from them that is 0 anyway (the leaf check cannot see it) gives a nan derivative, never a silent one
         root = jnp.sqrt(nu)
-        slope = jnp.where(zero, jnp.nan, 1 / (2 * jnp.where(zero, 1.0, root)))
-        return root, jnp.where(dnu == 0, 0.0, dnu * slope)
+        return root, dnu * jnp.where(zero, jnp.nan, 1 / (2 * jnp.where(zero, 1.0, root)))
     root = eqx.error_if(jnp.sqrt(nu), jnp.any(zero), _SINGULAR)
     return root, jnp.where(zero, 0.0, dnu / (2 * jnp.where(zero, 1.0, root)))
