@@ -256,6 +256,21 @@ def test_string_aliases_are_the_solver_objects():
         assert np.array_equal(a.cov, b.cov) and np.array_equal(a.mean, b.mean)
 
 
+def test_milstein_steps_a_float32_state_in_float32():
+    """diffrax's Milstein built its ``h I`` in float64 (x64 on): a float32 state failed under strict promotion, by
+    alias, as an object, and in the warning that lists the solvers fit for a step (Euler at ε·dt = 0.2)."""
+    y0 = BALL.initial_state().astype(jnp.float32)
+
+    def run(solver):
+        return nhsde.simulate(BALL.build(), y0, jax.random.key(1), n_paths=64, t1=0.4, dt=0.2, solver=solver)
+
+    with pytest.warns(nhsde.StationaryVarianceWarning, match=r"1\.25× the exact one .* or solver='heun2' / "):
+        alias, obj, euler = run("milstein"), run(diffrax.ItoMilstein()), run("euler")
+    assert alias.mean.dtype == jnp.float32 and np.array_equal(alias.cov, obj.cov)
+    # additive noise: Milstein's correction vanishes, so it is Euler–Maruyama up to float32 rounding
+    np.testing.assert_allclose(alias.cov, euler.cov, rtol=1e-5, atol=1e-7)
+
+
 def test_standard_errors_match_the_sample_of_paths():
     """mean_se and cov_se agree with the standard errors computed from the saved paths."""
     ens = nhsde.simulate(

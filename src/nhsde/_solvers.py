@@ -33,6 +33,7 @@ from typing import ClassVar, Literal
 
 import diffrax as dfx
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jax.scipy.linalg import expm
 
@@ -83,9 +84,28 @@ class ExponentialEuler(dfx.AbstractItoSolver):
         return terms.vf(t0, y0, args)
 
 
+class _Milstein(dfx.ItoMilstein):
+    """diffrax's Itô Milstein method, ``Z₁ = Z₀ + a h + b ΔW + ½ Σ b_k ∂_k b (ΔWΔWᵀ − h I)``, stepping in the
+    state's precision.
+
+    diffrax 0.7 builds the ``h I`` of the double integral in JAX's default precision: with float64 enabled a
+    float32 state became float64 (a dtype error under strict promotion, a changed carry otherwise).  The step
+    runs as diffrax's and returns its results in the state's dtype.
+    """
+
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        with jax.numpy_dtype_promotion("standard"):
+            y1, error, dense, state, result = super().step(terms, t0, t1, y0, args, solver_state, made_jump)
+        return jax.tree.map(lambda a, b: a.astype(b.dtype), y1, y0), error, _like(dense, y0), state, result
+
+
+def _like(dense: dict, y0):
+    return {k: jax.tree.map(lambda a, b: a.astype(b.dtype), v, y0) for k, v in dense.items()}
+
+
 SOLVERS: dict[str, Callable[[], dfx.AbstractSolver]] = {
     "euler": dfx.Euler,
-    "milstein": dfx.ItoMilstein,
+    "milstein": _Milstein,
     "heun": dfx.EulerHeun,
     "heun2": lambda: dfx.Heun(scan_kind="lax"),
     "sra1": lambda: dfx.SRA1(scan_kind="lax"),
@@ -135,6 +155,8 @@ def solver_needs(solver: str | dfx.AbstractSolver, system: StochasticSystem) -> 
         name, solver = solver, SOLVERS[solver]()
     elif isinstance(solver, dfx.AbstractSolver):
         name = type(solver).__name__
+        if type(solver) is dfx.ItoMilstein:
+            solver = _Milstein()  # diffrax's own, in the state's precision
     else:
         raise TypeError(f"solver={solver!r}; expected one of {', '.join(SOLVERS)} or a diffrax solver object.")
     if isinstance(solver, dfx.AbstractFosterLangevinSRK):
