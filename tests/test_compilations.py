@@ -81,3 +81,29 @@ def test_first_to_accuracy_compiles_few_programs():
     quasi-Monte Carlo's pilots and the chosen run (136 before)."""
     counts = counted(ESTIMATOR.replace("sys.argv[1]", "'accuracy'"))
     assert len(counts["compiled"]) <= 16, counts["compiled"]
+
+
+COMMAND = r"""
+import contextlib, io, json, logging, jax
+compiled = []
+class Count(logging.Handler):
+    def emit(self, record):
+        if record.getMessage().startswith("Compiling "):
+            compiled.append(record.getMessage().split(" ")[1])
+logging.getLogger("jax").addHandler(Count())
+logging.getLogger("jax").setLevel(logging.WARNING)
+jax.config.update("jax_log_compiles", True)
+from nhsde.runs import main
+with contextlib.redirect_stdout(io.StringIO()) as out:
+    rc = main(["simulate", "ball-on-vibrating-plane", "--paths", "256", "--t1", "1", "--dt", "0.05"])
+print(json.dumps({"rc": rc, "compiled": compiled, "out": out.getvalue()}))
+"""
+
+
+def test_the_main_job_compiles_few_programs():
+    """The README's main job, small: ≤ 20 programs for the run, its derivatives and everything it prints (106 when
+    the printed statistics, the effective diffusion and the closed form ran op by op, one program per operation)."""
+    counts = counted(COMMAND)
+    assert counts["rc"] == 0 and "closed form (S0 (3.1))" in counts["out"]
+    assert len(counts["compiled"]) <= 20, counts["compiled"]
+    assert counts["compiled"].count("jit(_sensitivities)") == 1, counts["compiled"]

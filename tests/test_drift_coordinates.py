@@ -4,6 +4,7 @@ form (S0 (3.1)) within the Monte-Carlo standard error, and the exact knife edge 
 import sys
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -114,3 +115,37 @@ def test_the_effective_diffusions_standard_error_matches_its_spread_over_keys():
         statistics.effective_diffusion_se(
             nhsde.simulate(scene.build(), scene.initial_state(), jax.random.key(0), n_paths=8, t1=1.0, dt=0.05)
         )
+
+
+def test_the_effective_diffusion_under_jit_and_with_failed_paths():
+    """Under jit (traced times) ``D̂`` and its SE are the plain call's, and a fit start after the last save time is
+    refused with the plain message.  Failed paths (nan) are left out of the SE: it equals the delta-method formula
+    ``N/(N−1)·std(ψ_p)/√N`` over the other paths, computed here in numpy."""
+    scene = BallOnVibratingPlane(eps=1.0, nu=1.0)
+    run = dict(n_paths=256, t1=2.0, dt=0.05, save=nhsde.Save(n=5, paths=True))
+
+    def both(eps, t_from=None):
+        ens = nhsde.simulate(scene.build().replace_params(eps=eps), scene.initial_state(), jax.random.key(5), **run)
+        return statistics.effective_diffusion(ens, t_from), statistics.effective_diffusion_se(ens, t_from)
+
+    plain, traced = both(1.0), jax.jit(both)(1.0)
+    for a, b in zip(plain, traced, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
+    with pytest.raises(ValueError, match="fewer than two save times at or after it"):
+        both(1.0, 3.0)
+    with pytest.raises(Exception, match="fewer than two save times at or after it"):
+        jax.jit(both, static_argnums=1)(1.0, 3.0)
+
+    ens = nhsde.simulate(scene.build(), scene.initial_state(), jax.random.key(5), **run)
+    failed = np.zeros(256, bool)
+    failed[[3, 70, 200]] = True
+    paths = np.where(failed[:, None, None], np.nan, np.asarray(ens.paths))
+    broken = eqx.tree_at(lambda e: (e.paths, e.failed), ens, (jnp.asarray(paths), jnp.asarray(failed)))
+    z = paths[~failed][:, 2:, :2].astype(np.float64)  # t ≥ 1 (the default start), the coordinates x, y
+    ts = np.asarray(ens.ts)[2:]
+    c = (ts - ts.mean()) / np.sum((ts - ts.mean()) ** 2)
+    f = z - z.mean(axis=0)
+    psi = np.einsum("n,pni,pnj->pij", c, f, f) / 2
+    n = len(z)
+    expected = n / (n - 1) * np.std(psi, axis=0, ddof=1) / np.sqrt(n)
+    np.testing.assert_allclose(statistics.effective_diffusion_se(broken), expected, rtol=1e-5)

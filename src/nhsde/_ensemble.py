@@ -11,6 +11,7 @@ independent of all three.  Standard errors follow exactly from the same sums
 # No ``from __future__ import annotations``: equinox reads AbstractVar annotations, which must not be strings.
 
 import dataclasses
+import functools
 
 import equinox as eqx
 import jax
@@ -283,16 +284,22 @@ class AbstractMoments(eqx.Module):
 
     def select(self, names: tuple[str, ...]):
         """``(mean, cov, mean_se, cov_se)`` restricted to ``names`` (the errors ``None`` when there are none)."""
-        idx = []
         for n in names:
             if n not in self.names:
                 raise ValueError(f"{n!r} was not saved; saved: {self.names}.")
-            idx.append(self.names.index(n))
-        idx = np.asarray(idx)
-        ix = np.ix_(idx, idx)
-        errors = self.standard_errors()
-        mean_se, cov_se = (None, None) if errors is None else (errors[0][:, idx], errors[1][:, ix[0], ix[1]])
-        return self.mean[:, idx], self.cov[:, ix[0], ix[1]], mean_se, cov_se
+        mean, cov, errors = _select(self.mean, self.cov, self.standard_errors(), tuple(map(self.names.index, names)))
+        return (mean, cov, *((None, None) if errors is None else errors))
+
+
+@functools.partial(jax.jit, static_argnums=3)
+def _select(mean, cov, errors, idx: tuple[int, ...]):
+    """Means and covariances (with their errors, where there are) of the components ``idx`` (one program)."""
+    i = jnp.asarray(idx)
+
+    def cut(m, c):
+        return m[:, i], c[:, i[:, None], i[None, :]]
+
+    return *cut(mean, cov), None if errors is None else cut(*errors)
 
 
 class Ensemble(AbstractMoments):

@@ -462,7 +462,7 @@ def _print_effective_diffusion(scene: str, ens, p) -> None:
     the paths), and the closed form where the scene has one: the ball's ``νδ²/(8ε²)`` per axis."""
     from .. import statistics
 
-    d, se = statistics.effective_diffusion(ens), statistics.effective_diffusion_se(ens)
+    d, se = np.asarray(statistics.effective_diffusion(ens)), np.asarray(statistics.effective_diffusion_se(ens))
     names = statistics.drift_statistics(ens).names
     exact = None
     if scene == "ball-on-vibrating-plane" and float(p.eps) > 0:
@@ -482,7 +482,6 @@ def _cmd_simulate_scene(args) -> int:
     if _accuracy_given(args):
         return _cmd_accuracy_scene(args)
     import jax
-    import jax.numpy as jnp
 
     from .. import statistics
     from .._ensemble import Save
@@ -497,7 +496,7 @@ def _cmd_simulate_scene(args) -> int:
     built = config.build()
     d = config.data
 
-    p = built.system.params
+    p = jax.tree.map(np.asarray, built.system.params)  # printed on the host, not one program per operation
     # at ν = 0 paths scale like √ν: the ν-derivative does not exist and is reported as nan
     wrt = ("eps", "nu") if float(p.nu) > 0 else ("eps",)
     _check_sensitivity_memory(args, len(built.names), len(wrt))
@@ -520,37 +519,37 @@ def _cmd_simulate_scene(args) -> int:
         ens = sens.ensemble
 
         def by_parameter(field):  # (eps, nu), nan where not differentiated
-            values = getattr(sens, field)
-            return tuple(values[wrt.index(q)] if q in wrt else jnp.full_like(values[0], jnp.nan) for q in _PARAMS)
+            values = np.asarray(getattr(sens, field))
+            return tuple(values[wrt.index(q)] if q in wrt else np.full_like(values[0], np.nan) for q in _PARAMS)
 
         d_mean, d_cov, d_mean_se, d_cov_se = map(by_parameter, ("d_mean", "d_cov", "d_mean_se", "d_cov_se"))
         pieces = Pieces()
         pieces.add(ens, keep_paths=False)
-        tn, tnn = ("time", "name"), ("time", "name", "name2")
-        derivatives = {}
-        for a, q in enumerate(_PARAMS):
-            for stat, dims, value, se in (("mean", tn, d_mean, d_mean_se), ("cov", tnn, d_cov, d_cov_se)):
-                long_name = f"pathwise (forward-mode) derivative of {stat} in {q}"
-                derivatives[f"d_{stat}_d_{q}"] = (dims, np.asarray(value[a]), {"long_name": long_name})
-                derivatives[f"d_{stat}_d_{q}_se"] = (dims, np.asarray(se[a]), {"long_name": "its standard error"})
-        ds = dataset(config, built, pieces, provenance(config), extra=derivatives)
         if out:
-            write(ds, out)
+            tn, tnn = ("time", "name"), ("time", "name", "name2")
+            derivatives = {}
+            for a, q in enumerate(_PARAMS):
+                for stat, dims, value, se in (("mean", tn, d_mean, d_mean_se), ("cov", tnn, d_cov, d_cov_se)):
+                    long_name = f"pathwise (forward-mode) derivative of {stat} in {q}"
+                    derivatives[f"d_{stat}_d_{q}"] = (dims, np.asarray(value[a]), {"long_name": long_name})
+                    derivatives[f"d_{stat}_d_{q}_se"] = (dims, np.asarray(se[a]), {"long_name": "its standard error"})
+            write(dataset(config, built, pieces, provenance(config), extra=derivatives), out)
 
     params = config.parameters()
     print(f"scene {args.scene}: " + ", ".join(f"{k}={v:g}" for k, v in params.items()))
     print(
         f"{args.paths} paths, t1={args.t1}, dt={args.dt}, solver {args.solver}, seed {args.seed}, "
-        f"{d['precision']}; failed paths: {ds.attrs['n_failed']}"
+        f"{d['precision']}; failed paths: {sum(pieces.n_failed)}"
     )
     names, roles, last = built.names, built.roles, -1
     print(
-        f"\nat t = {float(ds['time'][last]):g}  (value ± standard error; derivatives pathwise, by forward mode"
+        f"\nat t = {args.t1:g}  (value ± standard error; derivatives pathwise, by forward mode"
         + ("" if len(wrt) == 2 else "; d/d nu is nan: it does not exist at nu = 0")
         + ")"
     )
     print(f"{'quantity':<22}{'value':>26}{'d/d eps':>26}{'d/d nu':>26}")
-    mean, mean_se, cov, cov_se = (ds[v].values[last] for v in ("mean", "mean_se", "cov", "cov_se"))
+    # the run file's statistics (float64, from the moment sums), written with --out or not
+    mean, cov, mean_se, cov_se = (np.asarray(a, np.float64)[last] for a in pieces.total().statistics())
     for i, n in enumerate(names):
         label = f"m[{n}]" + (" (systematic drift)" if roles[i] == "dependent_coordinate" else "")
         print(
@@ -566,8 +565,7 @@ def _cmd_simulate_scene(args) -> int:
     if "dependent_coordinate" in roles and len(ens.ts) >= 3:
         _print_effective_diffusion(args.scene, ens, p)
     if args.scene == "ball-on-vibrating-plane":
-        t = jnp.asarray(ds["time"].values[last])
-        kxx, kxu, kuu = ball_covariances(t, p.eps, p.nu, p.delta)
+        kxx, kxu, kuu = ball_covariances(np.float64(args.t1), p.eps, p.nu, p.delta)
         print(f"closed form (S0 (3.1)): k_xx={float(kxx):.6g}  k_xu={float(kxu):.6g}  k_uu={float(kuu):.6g}")
     if out:
         print(f"\n{_saved(out)}")

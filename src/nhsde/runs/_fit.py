@@ -20,12 +20,11 @@ import argparse
 import json
 import math
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-import xarray as xr
 
 from .._system import StochasticSystem
 from ..fit import FitResult, MomentEquations, Observations, Simulated, estimate
@@ -33,6 +32,9 @@ from ..scenes import get_scene
 from ._config import ConfigError, RunConfig
 from ._pieces import need_x64
 from ._store import FIT_FORMAT, FORMAT, FORMAT_VERSION, claim, load_run, provenance, seal, write
+
+if TYPE_CHECKING:
+    import xarray as xr  # imported where used: `import nhsde.runs` leaves it (and pandas) until a run file
 
 __all__ = [
     "DATA_MODELS",
@@ -95,6 +97,8 @@ def run_fit(config: RunConfig, out=None) -> tuple[FitResult, xr.Dataset]:
 
 
 def _fit(config: RunConfig) -> tuple[FitResult, xr.Dataset]:
+    import xarray as xr
+
     d = config.data
     data_path = config.base / d["fit"]["data"]
     if not data_path.is_file():
@@ -149,6 +153,7 @@ def read_data(path, system: StochasticSystem | None = None) -> Observations:
 
     With ``system``, every component must be one of its state or observable names.
     """
+
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"--data {path}: no such file.")

@@ -16,14 +16,17 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import diffrax as dfx
-import xarray as xr
 
 from .._ensemble import Save
 from .._simulate import simulate
 from ._config import RunConfig, x64_enabled
 from ._store import Pieces, claim, dataset, provenance, resume, write
+
+if TYPE_CHECKING:
+    import xarray as xr  # imported where used: `import nhsde.runs` leaves it (and pandas) until a run file
 
 __all__ = ["need_x64", "run"]
 

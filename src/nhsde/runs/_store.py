@@ -44,16 +44,19 @@ import os
 import subprocess
 from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-import xarray as xr
 
 from .._ensemble import Ensemble, MomentSums
 from ..scenes import scene_source_hash
 from ._config import Built, ConfigError, RunConfig
 from ._distributed import agree, digest, is_writer, several, to_host
+
+if TYPE_CHECKING:
+    import xarray as xr  # imported where used: `import nhsde.runs` leaves it (and pandas) until a run file
 
 __all__ = [
     "FIT_FORMAT",
@@ -136,14 +139,14 @@ def provenance(config: RunConfig) -> dict:
 def _float64(sums: MomentSums) -> MomentSums:
     """``sums`` in float64 (exact from float32), the count in int64, on this process's default device (through the
     host: over several processes ``simulate``'s results span the devices of all, a resumed file's only this one's)."""
-    f64 = lambda a: jnp.asarray(to_host(a), dtype=jnp.float64)
+    f64 = lambda a: jnp.asarray(np.asarray(to_host(a), np.float64))  # converted on the host: no program
     return MomentSums(
         shift=f64(sums.shift),
         s1=f64(sums.s1),
         s2=f64(sums.s2),
         s3=f64(sums.s3),
         s4=f64(sums.s4),
-        count=jnp.asarray(to_host(sums.count), jnp.int64),
+        count=jnp.asarray(np.asarray(to_host(sums.count), np.int64)),
     )
 
 
@@ -176,6 +179,8 @@ class Pieces:
 
 def dataset(config: RunConfig, built: Built, pieces: Pieces, prov: dict, extra: dict | None = None) -> xr.Dataset:
     """The run file of ``config`` after ``pieces`` (its statistics from their summed moment sums)."""
+    import xarray as xr
+
     d = config.data
     stack = lambda get: np.stack([np.asarray(get(s)) for s in pieces.sums])
     s1, s2, s3, s4 = (stack(lambda s, f=f: getattr(s, f)) for f in ("s1", "s2", "s3", "s4"))
@@ -283,6 +288,8 @@ def write(ds: xr.Dataset, path: Path):
 
 def data_digest(ds: xr.Dataset) -> str:
     """SHA-256 of ``ds``' data variables and their coordinates: name, dtype, shape and bytes of each (NaNs alike)."""
+    import xarray as xr
+
     return checksum(xr.Dataset({k: ds[k] for k in ds.data_vars}))
 
 
@@ -310,6 +317,8 @@ def load_run(path) -> xr.Dataset:
     A file that cannot be read (truncated, damaged) or does not match its
     checksum raises :class:`ConfigError` naming it.
     """
+    import xarray as xr
+
     try:
         with xr.open_dataset(path, engine="h5netcdf") as ds:
             ds.load()

@@ -21,7 +21,6 @@ import jax
 import numpy as np
 
 from .._ensemble import Save
-from .._sweep import sweep
 from ._config import ConfigError, RunConfig, default_statistic, parse_statistic
 from ._store import FORMAT_VERSION, claim, provenance, seal, write
 
@@ -125,6 +124,8 @@ def _fmt(value, se) -> str:
 
 def sweep_command(args) -> int:
     """Run ``nhsde sweep``: print the statistic (and its derivatives) at every grid point, save with ``--out``."""
+    from .._sweep import sweep  # xarray and pandas: only for this command
+
     for name, default in _DEFAULTS.items():
         if getattr(args, name) is None:
             setattr(args, name, default)

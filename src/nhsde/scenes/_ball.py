@@ -19,6 +19,7 @@ import math
 from typing import ClassVar
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 
 from .._params import AbstractParameters, parameter, sqrt_intensity
@@ -175,6 +176,7 @@ def _psi(s):
     return jnp.where(small, series, exact)
 
 
+@jax.jit  # one program, not one per operation
 def ball_covariances(t, eps, nu, delta):
     """Exact ``(k_xx, k_xu, k_uu)`` of (3.1) from a deterministic initial state.
 

@@ -13,6 +13,7 @@ through either.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import equinox as eqx
@@ -22,7 +23,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .._ensemble import AbstractMoments, Ensemble
-from .._misc import check_number
+from .._misc import check_number, is_concrete
 from .._system import StochasticSystem
 
 __all__ = [
@@ -167,18 +168,40 @@ def effective_diffusion(
         0.0638
     """
     stats = drift_statistics(ens, coordinates)
-    return jnp.einsum("n,nij->ij", _slope_weights(ens.ts, t_from), stats.fluctuation) / 2
+    start = _fit_start(ens.ts, t_from)
+    return _effective_diffusion(ens.ts, stats.fluctuation, start, not is_concrete(ens.ts, start))
 
 
-def _slope_weights(ts, t_from: float | None):
-    """``c`` with ``Σ c_n K(t_n)`` the least-squares slope of ``K`` over the save times ``t ≥ t_from``."""
+def _fit_start(ts, t_from: float | None):
+    """The first save time of the slope's fit (default the middle of the run); fewer than two save times at or
+    after it are refused now where the times are concrete, else inside the fit (the same message)."""
+    ts = np.asarray(ts) if is_concrete(ts) else ts  # concrete times: the start is found on the host
     start = ts[-1] / 2 + ts[0] / 2 if t_from is None else t_from
+    if is_concrete(ts, start):
+        if np.sum(ts >= np.asarray(start)) < 2:
+            raise ValueError(_few_times(start))
+    return start
+
+
+def _few_times(start) -> str:
+    return f"t_from={start}: fewer than two save times at or after it; save more points."
+
+
+def _slope_weights(ts, start, traced: bool):
+    """``c`` with ``Σ c_n K(t_n)`` the least-squares slope of ``K`` over the save times ``t ≥ start`` (checked here
+    where ``traced``; concrete times were checked on the host, and a program without the check can be cached)."""
     w = (ts >= start).astype(ts.dtype)
-    if int(jnp.sum(w)) < 2:
-        raise ValueError(f"t_from={start}: fewer than two save times at or after it; save more points.")
+    if traced:
+        w = eqx.error_if(w, jnp.sum(w) < 2, _few_times("the fit's start"))
     tbar = jnp.sum(w * ts) / jnp.sum(w)
     dt = w * (ts - tbar)
     return dt / jnp.sum(dt * (ts - tbar))
+
+
+@functools.partial(jax.jit, static_argnums=3)
+def _effective_diffusion(ts, fluctuation, start, traced: bool):
+    """``½ Σ_n c_n K(t_n)`` (one program)."""
+    return jnp.einsum("n,nij->ij", _slope_weights(ts, start, traced).astype(fluctuation.dtype), fluctuation) / 2
 
 
 def effective_diffusion_se(
@@ -201,13 +224,22 @@ def effective_diffusion_se(
     if ens.paths is None or ens.failed is None:
         raise ValueError("effective_diffusion_se needs the paths: simulate with Save(paths=True).")
     names = drift_statistics(ens, coordinates).names
-    idx = np.asarray([ens.names.index(n) for n in names])
-    used = ~np.asarray(ens.failed)
-    z = jnp.asarray(ens.paths)[used][..., idx]  # (N, n, k)
-    f = z - jnp.mean(z, axis=0)
-    psi = jnp.einsum("n,pni,pnj->pij", _slope_weights(ens.ts, t_from).astype(f.dtype), f, f) / 2
-    n = psi.shape[0]
-    return n / (n - 1) * jnp.std(psi, axis=0, ddof=1) / math.sqrt(n)
+    idx = tuple(ens.names.index(n) for n in names)
+    start = _fit_start(ens.ts, t_from)
+    return _effective_diffusion_se(ens.paths, ens.failed, ens.ts, start, idx, not is_concrete(ens.ts, start))
+
+
+@functools.partial(jax.jit, static_argnums=(4, 5))
+def _effective_diffusion_se(paths, failed, ts, start, idx: tuple[int, ...], traced: bool):
+    """``N/(N−1) · std(ψ_p)/√N`` over the paths used (one program)."""
+    used = (~failed)[:, None, None]
+    n = (failed.size - jnp.sum(failed)).astype(paths.dtype)
+    z = jnp.where(used, paths[..., jnp.asarray(idx)], 0)  # (P, n, k), failed paths (maybe nan) zero
+    f = jnp.where(used, z - jnp.sum(z, axis=0) / n, 0)
+    psi = jnp.einsum("n,pni,pnj->pij", _slope_weights(ts, start, traced).astype(f.dtype), f, f) / 2
+    mean = jnp.sum(psi, axis=0) / n
+    var = jnp.sum(jnp.where(used, psi - mean, 0) ** 2, axis=0) / (n - 1)
+    return n / (n - 1) * jnp.sqrt(var / n)
 
 
 def stationary_moments(ens: AbstractMoments, t_from: float) -> StationaryMoments:

@@ -25,8 +25,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 from jaxtyping import Array, Float
 
 from .._misc import check_number, check_steps
@@ -125,6 +123,8 @@ def _along(values, axis, k):
 
 def _operator(system: StochasticSystem, axes, t: float):
     """Sparse ``M`` with ``df/dt = M f`` on the flattened grid (C order)."""
+    import scipy.sparse as sp  # scipy where a density is solved for: `import nhsde` leaves it
+
     k = len(axes)
     shape = tuple(len(a) for a in axes)
     hs = [float(a[1] - a[0]) for a in axes]
@@ -231,6 +231,8 @@ def stationary_fokker_planck(system: StochasticSystem, bounds, n) -> GridDensity
         >>> print(round(float(density.cov()[0, 0]), 3))
         0.128
     """
+    import scipy.sparse.linalg as spla
+
     system, axes = _grid(system, bounds, n)
     _check_autonomous(system, axes, 0.0)
     m = _operator(system, axes, 0.0).tolil()
@@ -263,6 +265,9 @@ def fokker_planck(
     Returns:
         a :class:`GridDensity` with ``ts`` ``(save_n,)`` and ``values`` ``(save_n, *n)``.
     """
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
     system, axes = _grid(system, bounds, n)
     t0, t1 = check_number("t0", t0), check_number("t1", t1)
     if t1 <= t0:
