@@ -431,16 +431,13 @@ def _linear_modes(linear_drift: Callable | None, needs: SolverNeeds, params, dt)
     """
     a = cast(Callable, linear_drift)(cast_floats(params, dt.dtype)).astype(dt.dtype)  # the declared linear drift
     lams = jnp.linalg.eigvals(a)
-    zero = jnp.zeros((2,), dt.dtype)
-
-    unit = jnp.eye(2, dtype=dt.dtype)
 
     def one(lam):
-        propagator = jax.vmap(lambda e: _mode_step(needs, lam, dt, e, zero, zero), out_axes=1)(unit)
+        # the step is linear in (state, W, H): the steps from the six unit inputs, one traced step for all three
+        units = jnp.eye(6, dtype=dt.dtype)
+        steps = jax.vmap(lambda e: _mode_step(needs, lam, dt, e[:2], e[2:4], e[4:]))(units)
+        propagator, jw, jh = steps[:2].T, steps[2:4], steps[4:]
         gain = jnp.sqrt(jnp.abs(jnp.linalg.det(propagator)))  # R(λh)·rotation: |det| = |R|²
-        # from a zero state the step is linear in the increments: its columns are the steps from unit increments
-        jw = jax.vmap(lambda w: _mode_step(needs, lam, dt, zero, w, zero))(unit)
-        jh = jax.vmap(lambda h: _mode_step(needs, lam, dt, zero, zero, h))(unit)
         added = (dt * jnp.sum(jw**2) + dt / 12 * jnp.sum(jh**2)) / 2  # W ~ N(0, h), H ~ N(0, h/12) per channel
         x = jnp.real(lam).astype(dt.dtype)
         factor = added / jnp.maximum(1 - gain**2, jnp.finfo(dt.dtype).tiny) * 2 * jnp.abs(x)
