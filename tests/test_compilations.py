@@ -5,7 +5,7 @@ import json
 import subprocess
 import sys
 
-PRELUDE = r"""
+COUNTER = r"""
 import json, logging, jax
 compiled = []
 class Count(logging.Handler):
@@ -15,11 +15,17 @@ class Count(logging.Handler):
 logging.getLogger("jax").addHandler(Count())
 logging.getLogger("jax").setLevel(logging.WARNING)
 jax.config.update("jax_log_compiles", True)
+"""
+
+PRELUDE = (
+    COUNTER
+    + r"""
 import nhsde
 scene = nhsde.scenes.ChaplyginSleigh(drift=False)
 system, y0, key = scene.build(), scene.initial_state(), jax.random.key(0)
 del compiled[:]  # the scene and the key are the user's
 """
+)
 
 COUNT = (
     PRELUDE
@@ -83,21 +89,16 @@ def test_first_to_accuracy_compiles_few_programs():
     assert len(counts["compiled"]) <= 16, counts["compiled"]
 
 
-COMMAND = r"""
-import contextlib, io, json, logging, jax
-compiled = []
-class Count(logging.Handler):
-    def emit(self, record):
-        if record.getMessage().startswith("Compiling "):
-            compiled.append(record.getMessage().split(" ")[1])
-logging.getLogger("jax").addHandler(Count())
-logging.getLogger("jax").setLevel(logging.WARNING)
-jax.config.update("jax_log_compiles", True)
+COMMAND = (
+    COUNTER
+    + r"""
+import contextlib, io
 from nhsde.runs import main
 with contextlib.redirect_stdout(io.StringIO()) as out:
     rc = main(["simulate", "ball-on-vibrating-plane", "--paths", "256", "--t1", "1", "--dt", "0.05"])
 print(json.dumps({"rc": rc, "compiled": compiled, "out": out.getvalue()}))
 """
+)
 
 
 def test_the_main_job_compiles_few_programs():
