@@ -66,3 +66,24 @@ def test_range_checks_of_traced_parameters_survive_a_trace_with_host_checked_par
         eps_of(-1.0)
     with pytest.raises(RAISED, match="parameter eps must be finite and ≥ 0"):
         jax.vmap(eps_of)(jnp.array([1.0, -1.0]))
+
+
+def test_without_the_jax_state_every_check_stays_in_the_programs(monkeypatch):
+    """Where JAX offers no config state to key programs on (its private API changed), ``checked_on_host`` does
+    nothing: the programs keep their checks (and stay out of the persistent cache), and the answers are the same."""
+    import nhsde._params as params
+
+    def sensitivities():
+        return nhsde.statistics.moment_sensitivities(
+            SYSTEM, SCENE.initial_state(), jax.random.key(2), wrt=("eps", "nu"), n_paths=64, t1=1.0, dt=0.1
+        )
+
+    keyed = sensitivities()
+    monkeypatch.setattr(params, "_CHECKED_ON_HOST", None)
+    with checked_on_host():
+        assert not parameters_checked_on_host()
+    unkeyed = sensitivities()
+    for a, b in ((keyed.cov, unkeyed.cov), (keyed.d_cov, unkeyed.d_cov), (keyed.d_cov_se, unkeyed.d_cov_se)):
+        assert jnp.allclose(a, b, rtol=1e-12, atol=1e-12)
+    with pytest.raises(RAISED, match="parameter eps must be finite and ≥ 0"):
+        jax.jit(lambda eps: k_xx(1.0, eps))(-1.0)

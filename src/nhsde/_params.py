@@ -21,21 +21,32 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax._src import config as _jax_config
 
 from ._misc import is_concrete
 
 __all__ = ["AbstractParameters", "check_ranges", "parameter", "sqrt_intensity", "validated"]
 
-_CHECKED_ON_HOST = _jax_config.State(
-    "nhsde_parameters_checked_on_host",
-    False,
-    "nhsde internal: the parameters of the programs traced now were checked on the host (ranges, and no "
-    "differentiated parameter is 0), so their run-time checks (host callbacks) are left out of the programs.",
-    include_in_jit_key=True,
-    include_in_trace_context=True,  # in every jit and transformation cache key: a program traced without the
-    # checks is never reused by a trace that needs them
-)
+
+def _host_checked_state():
+    """A JAX config state in every jit and transformation cache key (JAX's private ``config.State``), or ``None``
+    where this JAX offers none: then every program keeps its parameters' checks (correct, and not cached on disk)."""
+    try:
+        from jax._src import config as jax_config
+
+        return jax_config.State(
+            "nhsde_parameters_checked_on_host",
+            False,
+            "nhsde internal: the parameters of the programs traced now were checked on the host (ranges, and no "
+            "differentiated parameter is 0), so their run-time checks (host callbacks) are left out of the programs.",
+            include_in_jit_key=True,
+            include_in_trace_context=True,  # a program traced without the checks is never reused by a trace that
+            # needs them
+        )
+    except (ImportError, AttributeError, TypeError):
+        return None
+
+
+_CHECKED_ON_HOST = _host_checked_state()
 """JAX's persistent compilation cache writes no entry for a program with a host callback (``eqx.error_if``); a
 program traced in :func:`checked_on_host` has none of the parameters' checks."""
 
@@ -208,7 +219,7 @@ def validated(params):
 def parameters_checked_on_host() -> bool:
     """Whether the programs traced now take parameters that their caller checked on the host
     (:func:`checked_on_host`)."""
-    return bool(_CHECKED_ON_HOST.value)
+    return _CHECKED_ON_HOST is not None and bool(_CHECKED_ON_HOST.value)
 
 
 @contextlib.contextmanager
@@ -228,6 +239,9 @@ def checked_on_host():
     (``_simulate._check_linear_stability``) and checks too few paths and overflow on the host after it, so
     ``simulate`` returns its traced outputs unchecked.
     """
+    if _CHECKED_ON_HOST is None:  # this JAX cannot key programs on it: the checks stay in them
+        yield
+        return
     with _CHECKED_ON_HOST(True):
         yield
 
