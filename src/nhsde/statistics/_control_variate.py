@@ -91,7 +91,7 @@ from ._paths import (
     paths_save,
     roles_of,
     safe_sqrt,
-    solve_paths,
+    solve_paths_with_tangents,
     with_tangents,
 )
 from ._sensitivities import check_wrt
@@ -387,7 +387,7 @@ def control_variate(
 
     def run(s: StochasticSystem, start):
         options = dict(t0=t0, t1=t1, steps=steps, solver=solver, save=save, batching=batching)
-        return solve_paths(s, start, key, first_path=0, n_paths=n_paths, **options)
+        return solve_paths_with_tangents(s, start, key, wrt, first_path=0, n_paths=n_paths, **options)
 
     n_ode = (n_save - 1) * math.ceil(max(4 * n_steps, _ODE_STEPS) / (n_save - 1))
 
@@ -396,9 +396,9 @@ def control_variate(
         closure = _closure(linearised_system(s, follow=follow), y0.dtype)
         return _exact(closure, ito, cast_floats(ito.params, y0.dtype), names, p0, y0, t0, t1, n_ode, n_save)
 
-    y, t_y = with_tangents(lambda s: run(s, y0), system, wrt)
+    y, t_y = run(system, y0)
     start = array_module(p0, y0).concatenate([p0, y0])
-    c, t_c = with_tangents(lambda s: run(linearised_system(s, follow=follow), start), system, wrt)
+    c, t_c = run(linearised_system(system, follow=follow), start)
     (ts, exact_mean, exact_cov), d_exact = with_tangents(exact, system, wrt)
     if array_module(y, c, exact_mean) is np:  # the combination on the host, with the paths' statistics
         ts, exact_mean, exact_cov = (np.asarray(a, np.float64) for a in (ts, exact_mean, exact_cov))

@@ -198,7 +198,30 @@ def solve_paths(system: StochasticSystem, y0, key, *, first_path: int, n_paths: 
     """Per-path saved values of paths ``first_path … first_path + n_paths − 1`` (:data:`KEY_PATHS` per key) by
     :func:`~nhsde.simulate` with ``options`` (whose ``save`` keeps the paths), in the runs of :func:`runs`;
     concrete values are gathered on the host (:func:`array_module`)."""
-    parts = []
+    return _joined(*_solve_runs(system, y0, key, first_path=first_path, n_paths=n_paths, **options))
+
+
+def solve_paths_with_tangents(
+    system: StochasticSystem, y0, key, wrt: tuple[str, ...], *, first_path: int, n_paths: int, **options
+) -> tuple[Values, Values | None]:
+    """:func:`solve_paths` and the paths' tangents ``(len(wrt), n_paths, n, k)`` in the parameters ``wrt`` (forward
+    mode, :func:`with_tangents`; ``None`` without ``wrt``).  The runs are differentiated whole and joined after, on
+    the host where concrete: the forward mode's reshaping then compiles a few programs per run size (two), not per
+    path count."""
+    keeps: list[int] = []
+
+    def whole_runs(solved: StochasticSystem):
+        parts, kept = _solve_runs(solved, y0, key, first_path=first_path, n_paths=n_paths, **options)
+        keeps[:] = kept
+        return parts
+
+    parts, tangents = with_tangents(whole_runs, system, wrt)
+    return _joined(parts, keeps), None if tangents is None else _joined(tangents, keeps, axis=1)
+
+
+def _solve_runs(system: StochasticSystem, y0, key, *, first_path: int, n_paths: int, **options):
+    """The saved paths of each whole run of :func:`solve_paths`, and how many of each run's paths it keeps."""
+    parts, keeps = [], []
     system = signed(system)  # one program for the paths and their reflections
     steps = options.get("steps")
     if isinstance(steps, FixedSteps) and steps.brownian_dt is None:  # the base step as data: one program for all
@@ -219,12 +242,19 @@ def solve_paths(system: StochasticSystem, y0, key, *, first_path: int, n_paths: 
             with priced_steps():
                 ens = simulate(system, start_states, k, n_paths=run, first_path=start, **options)
             assert ens.paths is not None
-            parts.append((ens.paths, keep))
+            parts.append(ens.paths)
+            keeps.append(keep)
             done += keep
             start += run
-    xp = array_module([p for p, _ in parts])
-    kept = [(np.asarray(p) if xp is np else p)[:keep] for p, keep in parts]
-    return kept[0] if len(kept) == 1 else xp.concatenate(kept)
+    return parts, keeps
+
+
+def _joined(parts, keeps: list[int], axis: int = 0):
+    """The kept paths of each run (the first ``keep`` along ``axis``), joined in order; on the host where concrete."""
+    xp = array_module(parts)
+    cut = (slice(None),) * axis
+    kept = [(np.asarray(p) if xp is np else p)[(*cut, slice(0, keep))] for p, keep in zip(parts, keeps, strict=True)]
+    return kept[0] if len(kept) == 1 else xp.concatenate(kept, axis=axis)
 
 
 def coupled_paths(
@@ -252,23 +282,20 @@ def coupled_paths(
     out, tangents = [], []
     for s in systems:
         for dt in dts:
-
-            def per_path(solved: StochasticSystem, dt=dt):
-                return solve_paths(
-                    solved,
-                    y0,
-                    key,
-                    first_path=first_path,
-                    n_paths=n_paths,
-                    t0=t0,
-                    t1=t1,
-                    steps=FixedSteps(dt, brownian_dt=brownian_dt),
-                    solver=solver,
-                    save=save,
-                    batching=batching,
-                )
-
-            z, t = with_tangents(per_path, s, wrt)
+            z, t = solve_paths_with_tangents(
+                s,
+                y0,
+                key,
+                wrt,
+                first_path=first_path,
+                n_paths=n_paths,
+                t0=t0,
+                t1=t1,
+                steps=FixedSteps(dt, brownian_dt=brownian_dt),
+                solver=solver,
+                save=save,
+                batching=batching,
+            )
             out.append(z)
             if wrt:
                 tangents.append(t)
