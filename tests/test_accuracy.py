@@ -435,3 +435,33 @@ def test_multilevel_quasi_monte_carlo_is_priced_from_its_pilot_and_reaches_the_t
     assert len(counts) == len(plan.n_paths) >= 2 and all(n <= cap for n, cap in zip(counts, plan.n_paths)), r.report()
     assert max(counts) > 16 * 64, counts
     assert r.predicted.path_steps / 2 <= r.run_cost.path_steps <= 2 * r.predicted.path_steps, r.report()
+
+
+def oscillator(a=1.0, b=4.0, sigma=0.2):
+    """dz = A z dt + σ dW with A = [[−a, b], [−b, −a]] (eigenvalues −a ± ib), declared as its linear drift."""
+    matrix = lambda p: jnp.array([[-p[0], p[1]], [-p[1], -p[0]]])  # noqa: E731
+    return nhsde.StochasticSystem(
+        drift_fn=lambda t, z, p: matrix(p) @ z,
+        diffusion_fn=lambda t, z, p: p[2] * jnp.eye(2, dtype=z.dtype),
+        params=jnp.array([a, b, sigma]),
+        layout=nhsde.StateLayout(("x", "y"), ("independent_coordinate",) * 2),
+        noise_dim=2,
+        additive_noise=True,
+        linear_drift=matrix,
+    )
+
+
+def test_a_solver_unstable_at_the_first_pilots_step_does_not_apply():
+    """On ż = A z + σẆ with eigenvalues −1 ± 4i at the default h₀ = 1/4: Euler's |1 + λh|² = 1.5625 (unstable),
+    weak order 2's (Heun's) |1 + λh + (λh)²/2|² = 0.64.  h₀ stays 1/4 (it was halved to 1/16 for Euler), Euler's
+    alternatives are listed as not applying with the stability limit, and E[x(1)] = e^{−1} cos 4 is met."""
+    r = to_accuracy(
+        oscillator(), jnp.array([1.0, 0.0]), jax.random.key(3), t1=1.0, statistic=("mean", "x"), rmse=0.01, explore=True
+    )
+    euler = [a for a in r.alternatives if "euler" in a.name and "exponential" not in a.name]
+    assert euler and all(
+        not a.applies and "does not apply at dt=0.25" in a.note and "unstable" in a.note for a in euler
+    )
+    assert any(a.applies and a.dt == 0.25 for a in r.alternatives if "weak2" in a.name)
+    value, se = r.value()
+    assert abs(value - math.exp(-1.0) * math.cos(4.0)) < 4 * math.hypot(se, r.bias), (value, se, r.bias)

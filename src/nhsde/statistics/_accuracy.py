@@ -205,8 +205,9 @@ def to_accuracy(
       must be saved (``save.names``, default the statistic's names, of the system's observables).
     - ``rmse``: the absolute target, or ``relative_rmse``: relative to the pilot's ``|value|``.
     - ``dt`` (or ``steps=FixedSteps(dt)``): the coarsest step ``h₀`` considered (default
-      ``(t1 − t0)/4``, halved until every solver considered is inside its stability limit on the
-      system's declared friction, and again while the pilot's paths fail there, down to ``(t1 − t0)/2^10``, their
+      ``(t1 − t0)/4``, halved until the first pilot's solver is inside its stability limit on the system's
+      declared friction (another solver unstable there does not apply), and again while the pilot's paths fail
+      there, down to ``(t1 − t0)/2^10``, their
       work counted; if no alternative reaches the target or fits in memory there (a pilot path grown huge
       without overflowing inflates the bias bound), or the chosen run's paths fail, every alternative is priced
       again from half that step, once); pilots run at ``h₀ … h₀ 2^{1−pilot_levels}``, every alternative at ``h₀``
@@ -292,11 +293,14 @@ def to_accuracy(
         for e in estimators:
             e.check(system)
     candidates = list({e.candidate.label: e.candidate for e in estimators}.values())
+    # the first pilot: a solver that steps the system in its own calculus (no conversion each step), then the
+    # highest weak order: the solver most alternatives choose
+    first_solver = max(candidates, key=lambda c: (not c.converts(system), c.order))
     default_step = dt is None
     own_step = default_step or _OWN_STEP.get()  # halved where paths fail: the default or its retry's half
-    if default_step:  # the coarsest step: (t1 − t0)/4, halved until every candidate damps the declared friction
-        dt = (t1 - t0) / 4
-        while not all(stable_step(system, c.solver, dt) for c in candidates) and dt > (t1 - t0) / 2**30:
+    if default_step:  # the coarsest step: (t1 − t0)/4, halved until the first pilot's solver damps the friction
+        dt = (t1 - t0) / 4  # (another solver unstable there is listed as not applying: its pilot refuses the step)
+        while not stable_step(system, first_solver.solver, dt) and dt > (t1 - t0) / 2**30:
             dt /= 2
     h0 = check_number("dt", dt, positive=True)
     steps0 = check_steps("dt", t1 - t0, h0)
@@ -343,9 +347,6 @@ def to_accuracy(
         pilot_keys={c.label: i for i, c in enumerate(candidates)},
         antithetic_pilots=frozenset(e.candidate.label for e in estimators if e.antithetic),
     )
-    # the first pilot: a solver that steps the system in its own calculus (no conversion each step), then the
-    # highest weak order: the solver most alternatives choose
-    first_solver = max(candidates, key=lambda c: (not c.converts(system), c.order))
     failed_work = 0.0  # the default coarsest step is halved while the pilot's paths fail there (a nonlinear blow-up)
     while True:
         try:
