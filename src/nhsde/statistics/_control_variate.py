@@ -282,31 +282,73 @@ def _exact(closure, ito, params, names, p0, y0, t0, t1, n_ode, n_save):
     return ts, *_control_moments(ito, params, names, ts, ms[:, :d], ms[:, d:], ks[:, d:, d:])
 
 
-def _statistics(y, c):
-    """Plain and control moments of the paths, and ``(β, residual variance, reduction)`` for the means and the
-    covariances (on the host for concrete paths: ``array_module``)."""
-    plain = paired_moments([y], [1.0])
-    mean_c, cov_c, mvar_c, cvar_c = paired_moments([c], [1.0])
-    _, _, mvar_s, cvar_s = paired_moments([y, c], [1.0, 1.0])
+def fitted_controls(ys: list, cs: list, weights: list):
+    """Moments of the combination ``Σ_a w_a Y_a`` of the system's per-path sets (:func:`paired_moments`) and of the
+    same combination of its controls' sets, and per mean and covariance entry ``(β, residual variance,
+    reduction)`` (on the host for concrete paths: ``array_module``)."""
+    plain = paired_moments(ys, weights)
+    mean_c, cov_c, mvar_c, cvar_c = paired_moments(cs, weights)
+    _, _, mvar_s, cvar_s = paired_moments([*ys, *cs], [*weights, *weights])
     split_m, split_c = _split(plain[2], mvar_c, mvar_s), _split(plain[3], cvar_c, cvar_s)
     beta, resid, reduction = zip(split_m, split_c, strict=True)
     return plain, (mean_c, cov_c), beta, resid, reduction
 
 
-def _reference(system, y0, linearisation):
-    """``(follow, p0)``: the reference motion's kind and start."""
+def _reference(system, y0, linearisation, argument: str):
+    """``(follow, p0)``: the reference motion's kind and start (``linearisation`` passed as ``argument``)."""
     if isinstance(linearisation, str) or linearisation is None:
         if linearisation not in (None, "mean"):
             raise ValueError(
-                f"linearisation={linearisation!r}; allowed: 'mean' (the noiseless motion from y0) or a reference "
+                f"{argument}={linearisation!r}; allowed: 'mean' (the noiseless motion from y0) or a reference "
                 f"state of shape ({system.state_dim},) (e.g. a steady motion)."
             )
         return True, y0
     try:
-        p0 = system.state(linearisation, "linearisation")
+        p0 = system.state(linearisation, argument)
     except ValueError as e:
-        raise ValueError(f"{e} linearisation must be 'mean' or a reference state (e.g. a steady motion).") from None
+        raise ValueError(f"{e} {argument} must be 'mean' or a reference state (e.g. a steady motion).") from None
     return False, p0.astype(y0.dtype)
+
+
+class LinearisedControl(eqx.Module):
+    """The control of ``system`` from ``y0`` (module): :func:`linearised_system` about the reference of
+    ``linearisation`` (``'mean'``, ``None`` or a state; the caller's ``argument``), its start ``(p0, y0)``, and its
+    exact saved moments."""
+
+    system: StochasticSystem
+    start: Values
+    follow: bool = eqx.field(static=True)
+
+    def __init__(self, system: StochasticSystem, y0, linearisation, names: tuple[str, ...], argument: str):
+        observables = [n for n in names if n not in system.layout.names]
+        if not system.noise.continuous and observables:
+            raise ValueError(
+                f"save.names={names}: with the jump driver {type(system.noise).__name__} the control is not "
+                "Gaussian, and the covariance of a nonlinear observable's control needs Gaussian fourth moments "
+                f"(Isserlis); save state components only, not {observables}."
+            )
+        self.follow, p0 = _reference(system, y0, linearisation, argument)
+        self.system = linearised_system(system, follow=self.follow)
+        self.start = array_module(p0, y0).concatenate([p0, y0])
+
+    def exact(self, system: StochasticSystem, names, t0, t1, n_steps: int, n_save: int, wrt, on_host: bool):
+        """``((ts, mean, cov), tangents)``: the exact moments of the saved quantities' controls of ``system`` (its
+        parameters may differ from the control's: this is differentiated in them, :func:`with_tangents`), in
+        float64 NumPy arrays with ``on_host`` (to combine with the paths' host statistics); ``n_steps`` the SDE's
+        steps (the moment equations take ≥ 4 per step)."""
+        d = self.start.shape[0] // 2
+        p0, y0 = self.start[:d], self.start[d:]
+        n_ode = (n_save - 1) * math.ceil(max(4 * n_steps, _ODE_STEPS) / (n_save - 1))
+
+        def exact(s: StochasticSystem):
+            ito = s.converted("ito")
+            closure = _closure(linearised_system(s, follow=self.follow), y0.dtype)
+            return _exact(closure, ito, cast_floats(ito.params, y0.dtype), names, p0, y0, t0, t1, n_ode, n_save)
+
+        moments, tangents = with_tangents(exact, system, wrt)
+        if on_host:
+            moments = tuple(np.asarray(a, np.float64) for a in moments)
+        return moments, tangents
 
 
 def control_variate(
@@ -362,19 +404,12 @@ def control_variate(
     n_steps = check_steps("dt", t1 - t0, h)
     steps = FixedSteps(h) if steps is None else steps
     y0 = system.state(y0, "y0")
-    follow, p0 = _reference(system, y0, linearisation)
     solver_needs(solver, system)  # names the solver if it cannot solve the system
     save = paths_save(save, n_steps, system.layout.names)
     assert save.names is not None
     names = save.names
     system.observe(names)  # unknown names raise naming save
-    observables = [n for n in names if n not in system.layout.names]
-    if not system.noise.continuous and observables:
-        raise ValueError(
-            f"save.names={names}: with the jump driver {type(system.noise).__name__} the control is not Gaussian, "
-            f"and the covariance of a nonlinear observable's control needs Gaussian fourth moments (Isserlis); "
-            f"save state components only, not {observables}."
-        )
+    control = LinearisedControl(system, y0, linearisation, names, "linearisation")
     key = check_key(key)
 
     n_save = save.n
@@ -389,20 +424,11 @@ def control_variate(
         options = dict(t0=t0, t1=t1, steps=steps, solver=solver, save=save, batching=batching)
         return solve_paths_with_tangents(s, start, key, wrt, first_path=0, n_paths=n_paths, **options)
 
-    n_ode = (n_save - 1) * math.ceil(max(4 * n_steps, _ODE_STEPS) / (n_save - 1))
-
-    def exact(s: StochasticSystem):
-        ito = s.converted("ito")
-        closure = _closure(linearised_system(s, follow=follow), y0.dtype)
-        return _exact(closure, ito, cast_floats(ito.params, y0.dtype), names, p0, y0, t0, t1, n_ode, n_save)
-
     y, t_y = run(system, y0)
-    start = array_module(p0, y0).concatenate([p0, y0])
-    c, t_c = run(linearised_system(system, follow=follow), start)
-    (ts, exact_mean, exact_cov), d_exact = with_tangents(exact, system, wrt)
-    if array_module(y, c, exact_mean) is np:  # the combination on the host, with the paths' statistics
-        ts, exact_mean, exact_cov = (np.asarray(a, np.float64) for a in (ts, exact_mean, exact_cov))
-    (mean_y, cov_y, mvar_y, cvar_y), (mean_c, cov_c), beta, resid, reduction = _statistics(y, c)
+    c, t_c = run(control.system, control.start)
+    on_host = array_module(y, c) is np
+    (ts, exact_mean, exact_cov), d_exact = control.exact(system, names, t0, t1, n_steps, n_save, wrt, on_host)
+    (mean_y, cov_y, mvar_y, cvar_y), (mean_c, cov_c), beta, resid, reduction = fitted_controls([y], [c], [1.0])
     (beta_m, beta_c), (resid_m, resid_c), (red_m, red_c) = beta, resid, reduction
     derivatives = None
     if wrt:

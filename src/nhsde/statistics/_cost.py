@@ -104,10 +104,11 @@ def whole_pieces(n: float, cap: int = 2**16) -> tuple[int, int]:
     return piece * max(1, math.ceil(n / piece)), piece
 
 
-def level_cost(steps0: int, level: int, antithetic: bool) -> float:
-    """``C_ℓ``: path-steps per sample of multilevel level ``level`` (module)."""
+def level_cost(steps0: int, level: int, antithetic: bool, control: bool = False) -> float:
+    """``C_ℓ``: path-steps per sample of multilevel level ``level`` (module); the reflected paths and a control
+    (the linearised system on the same paths) each double it."""
     fine = steps0 * 2**level
-    return (2.0 if antithetic else 1.0) * (fine + (fine // 2 if level else 0))
+    return (2.0 if antithetic else 1.0) * (2.0 if control else 1.0) * (fine + (fine // 2 if level else 0))
 
 
 def level_piece(piece: int, level: int) -> int:
@@ -131,12 +132,14 @@ def multilevel_plan(
     anti: bool,
     base: int,
     max_levels: int = MAX_LEVELS,
+    control: bool = False,
 ) -> tuple[float, tuple[int, ...], int, int]:
     """``(cost, N_ℓ, piece_paths, L + 1)`` predicted for ``multilevel_monte_carlo``, pieces included.
 
     Levels until ``bias_bound h_L^p ≤ ε/√2``; ``V_ℓ`` beyond the pilot's decay at its finest rate ``2^{−β}``,
     ``1 ≤ β ≤ 2``.  Pieces of ``base·4^k`` paths on level 0 (``base`` the pilot's paths), at least ``N_0/16``:
-    targets close to one another share the compiled programs of each level."""
+    targets close to one another share the compiled programs of each level; ``control``: each sample also solves
+    the linearised system (``level_cost``)."""
     v = [max(x, 1e-300) for x in levels_v]
     if not all(math.isfinite(x) for x in v) or not math.isfinite(bound):
         return math.inf, (), 0, 0
@@ -149,7 +152,7 @@ def multilevel_plan(
     while len(v) < n_levels:
         v.append(v[-1] * 2**-beta)
     v = v[:n_levels]
-    costs = [level_cost(steps0, ell, anti) for ell in range(n_levels)]
+    costs = [level_cost(steps0, ell, anti, control) for ell in range(n_levels)]
     optimal = allocate(v, costs, eps)
     if not all(o < 2.0**62 for o in optimal):
         return math.inf, (), 0, 0

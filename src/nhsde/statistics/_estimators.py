@@ -33,7 +33,7 @@ from ._extrapolation import extrapolate
 from ._multilevel import MultilevelEstimate, multilevel_monte_carlo
 from ._multilevel_qmc import RUN_LIMIT, quasi_monte_carlo_to_variance
 from ._paths import KEY_PATHS, RUN_PATHS, solve_paths
-from ._pilot import Candidate, candidate, pilot_rate, run_pilot
+from ._pilot import Candidate, candidate, level_bias_bound, pilot_rate, run_pilot
 from ._qmc import MAX_DIMENSION
 from ._report import AccuracyAlternative, PilotSummary
 from ._variance_reduction import check_reflectable
@@ -264,49 +264,91 @@ class Multilevel(AbstractEstimator):
     """Multilevel Monte Carlo (:func:`~nhsde.statistics.multilevel_monte_carlo`, Giles 2008): levels until
     ``|C| h_L^p ≤ ε/√2``, ``V_ℓ`` beyond the pilot decaying at its rate, ``N_ℓ ∝ √(V_ℓ/C_ℓ)``, in whole pieces; run
     with that allocation fixed (an allocation adapted from its own samples stops early on low variance estimates,
-    biasing a covariance low)."""
+    biasing a covariance low).  ``control``: every level also solves the linearised system as a control variate
+    (``control='mean'``); it prices from a pilot of its own, the estimator itself at ``pilot_paths`` samples per
+    pilot level, whose level terms give ``V_ℓ`` and ``|C|`` as the solver's pilot does."""
 
     solver: str | dfx.AbstractSolver = "euler"
     weak_order: int | None = None
     antithetic: bool = False
+    control: bool = False
     method: str = dataclasses.field(default="multilevel", init=False, repr=False)
 
+    @property
+    def name(self) -> str:
+        return super().name + (", control variate" if self.control else "")
+
+    @property
+    def own_pilot(self) -> bool:
+        return self.control
+
+    def check(self, system: StochasticSystem) -> None:
+        super().check(system)
+        if self.control and not system.noise.continuous:
+            raise ValueError(f"{self!r}: the control needs a Wiener driver to price its statistic (Isserlis).")
+
+    def _levels(self, pricing: Pricing) -> tuple[tuple[float, ...], float, float]:
+        """``(V_ℓ, |C| bound, pilot work)``: the solver's pilot, or with the control its own."""
+        if not self.control:
+            p = pricing.pilot(self.candidate)
+            return _variances(p, self.antithetic)[2], p.bias_bound, 0.0
+        pilot = self._run(
+            pricing,
+            fold_key(pricing.pilot_key, 98),
+            (pricing.pilot_paths,) * pricing.pilot_levels,
+            None,
+            pricing.run_options(tangents=False),
+        )
+        variances = [float(v) for v in pilot.level_variances]
+        terms = [float(m) for m in pilot.level_means[1:]]
+        n = pricing.pilot_paths
+        bound = level_bias_bound(terms, [v / n for v in variances[1:]], pricing.h0, self.candidate.order)
+        return tuple(variances), bound, pilot.cost.path_steps
+
     def predict(self, pricing: Pricing) -> AccuracyAlternative:
-        p = pricing.pilot(self.candidate)
+        try:
+            variances, bound, work = self._levels(pricing)
+        except SimulationError as e:  # the control's pilot paths blow up at this step
+            return self.row(f"does not apply: {str(e).splitlines()[0][:160]}")
         c, counts, piece, n_levels = multilevel_plan(
-            _variances(p, self.antithetic)[2],
-            p.bias_bound,
-            p.order,
+            variances,
+            bound,
+            self.candidate.order,
             pricing.rmse,
             pricing.steps0,
             pricing.h0,
             self.antithetic,
             pricing.pilot_paths,
+            control=self.control,
         )
         note = f"{n_levels} levels" if n_levels else "too many levels"
         return AccuracyAlternative(
-            self.name, c, dt=pricing.h0, n_paths=counts, note=note, piece_paths=piece, estimator=self
+            self.name, c, dt=pricing.h0, n_paths=counts, note=note, piece_paths=piece, pilot_work=work, estimator=self
         )
 
-    def run(self, pricing: Pricing, plan: AccuracyAlternative) -> tuple[AbstractEstimate, float]:
-        res = multilevel_monte_carlo(
+    def _run(self, pricing: Pricing, key, counts, piece_paths, options) -> MultilevelEstimate:
+        return multilevel_monte_carlo(
             pricing.system,
             pricing.y0,
-            pricing.run_key,
-            n_paths=plan.n_paths,
-            dt=plan.dt,
+            key,
+            n_paths=counts,
+            dt=pricing.h0,
             solver=self.solver,
             weak_order=self.candidate.order,
             antithetic=self.antithetic,
-            piece_paths=plan.piece_paths,
+            control="mean" if self.control else None,
+            piece_paths=piece_paths or min(counts),
             statistic=pricing.statistic,
-            **pricing.run_options(),
+            **options,
         )
+
+    def run(self, pricing: Pricing, plan: AccuracyAlternative) -> tuple[AbstractEstimate, float]:
+        res = self._run(pricing, pricing.run_key, plan.n_paths, plan.piece_paths, pricing.run_options())
         return res, float(res.bias)
 
     def kept_samples(self, plan: AccuracyAlternative) -> float:
-        pairs = 2 if self.antithetic else 1
-        return pairs * sum(n * (2 if ell else 1) for ell, n in enumerate(plan.n_paths))
+        copies = (2 if self.antithetic else 1) * (2 if self.control else 1)
+        return copies * sum(n * (2 if ell else 1) for ell, n in enumerate(plan.n_paths))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -51,6 +51,7 @@ from .._options import AbstractSteps, Batching, FixedSteps
 from .._solvers import solver_needs
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
+from ._control_variate import LinearisedControl, PerEntry, fitted_controls
 from ._cost import MAX_LEVELS, allocate, check_memory, level_cost, level_piece, path_bytes, peak_bytes
 from ._estimate import AbstractEstimate, AbstractStatistic, Cost, Derivatives, Stopwatch, Values, as_statistic
 from ._paths import (
@@ -77,7 +78,7 @@ class MultilevelEstimate(AbstractEstimate):
     ``ℓ``: ``n_paths_per_level[ℓ] = N_ℓ``, ``level_means[ℓ] = Ŷ_ℓ`` (the statistic's level term),
     ``level_variances[ℓ] = V_ℓ`` (its per-sample variance), ``level_costs[ℓ] = C_ℓ`` (path-steps per sample);
     ``bias`` is the bias estimate from the finest levels; ``dt`` is ``h₀``; ``derivatives`` with ``wrt``;
-    ``cost.path_steps`` is ``Σ N_ℓ C_ℓ``.
+    ``cost.path_steps`` is ``Σ N_ℓ C_ℓ``; ``coefficient``: with a control, its ``β`` per saved entry.
     """
 
     ts: Float[Values, " n"]
@@ -97,40 +98,47 @@ class MultilevelEstimate(AbstractEstimate):
     derivatives: Derivatives | None
     cost: Cost = eqx.field(static=True)
     statistic: AbstractStatistic = eqx.field(static=True)
+    coefficient: PerEntry | None = None
 
 
 class _Levels:
-    """Level runs, their per-path values kept."""
+    """Level runs, their per-path values kept; with a control, the control's values follow the system's."""
 
-    def __init__(self, system, y0, key, *, t0, t1, h0, solver, save, antithetic, piece_paths, batching, wrt):
+    def __init__(self, system, y0, key, *, t0, t1, h0, solver, save, antithetic, piece_paths, batching, wrt, control):
         self.args = (system, y0)
         self.key = key
         self.opts = dict(t0=t0, t1=t1, solver=solver, save=save, antithetic=antithetic, batching=batching, wrt=wrt)
         self.h0, self.piece_paths, self.antithetic = h0, piece_paths, antithetic
         self.steps0 = round((t1 - t0) / h0)
+        self.control: LinearisedControl | None = control
         self.paths: list[list[list[Array]]] = []  # level → run → sets
         self.tangents: list[list[list[Array]]] = []  # the same, their tangents in wrt (empty without)
+        self._fitted: tuple[int, tuple] | None = None  # (level-0 count, (β_mean, β_cov)) of the control
+        self._exact = None  # the control's exact moments and their tangents
 
     def piece(self, level: int) -> int:
         return level_piece(self.piece_paths, level)
 
     def cost(self, level: int) -> float:
-        return level_cost(self.steps0, level, self.antithetic)
+        return level_cost(self.steps0, level, self.antithetic, self.control is not None)
 
     def check_memory(self, counts: Sequence[int], name: str, fix: str) -> None:
         """Refuse (naming ``name``) counts per level whose per-path values would not fit in memory."""
         save, wrt = self.opts["save"], self.opts["wrt"]
         per_sample = path_bytes(save.n, len(save.names), len(wrt))
-        sets = sum(n * (2 if level else 1) * (2 if self.antithetic else 1) for level, n in enumerate(counts))
+        copies = (2 if self.antithetic else 1) * (1 if self.control is None else 2)
+        sets = sum(n * (2 if level else 1) * copies for level, n in enumerate(counts))
         check_memory(name, peak_bytes(sets * per_sample), fix)
 
     def run(self, level: int, first_path: int, n_paths: int) -> tuple[list[Array], list[Array]]:
         h = self.h0 / 2**level
-        dts = (h, 2 * h) if level else (h,)
-        key = fold_key(self.key, level)
-        return coupled_paths(
-            *self.args, key, dts=dts, brownian_dt=h, n_paths=n_paths, first_path=first_path, **self.opts
-        )
+        options = dict(dts=(h, 2 * h) if level else (h,), brownian_dt=h, n_paths=n_paths, first_path=first_path)
+        key = fold_key(self.key, level)  # the control is driven by the same Brownian path
+        paths, tangents = coupled_paths(*self.args, key, **options, **self.opts)
+        if self.control is not None:
+            c, t = coupled_paths(self.control.system, self.control.start, key, **options, **self.opts)
+            paths, tangents = paths + c, tangents + t
+        return paths, tangents
 
     def grow(self, level: int, n_paths: int):
         """Run level ``level`` up to ``n_paths`` samples, in runs of the piece times a power of two (then the rest)."""
@@ -148,21 +156,69 @@ class _Levels:
         return sum(p[0].shape[0] for p in self.paths[level]) if level < len(self.paths) else 0
 
     def weights(self, level: int) -> list[float]:
+        """The weights of the system's sets in the level's term."""
         share = 0.5 if self.antithetic else 1.0
         return [share * w for w in ((1.0, -1.0) if level else (1.0,))] * (2 if self.antithetic else 1)
 
-    def moments(self, level: int):
-        """``(mean, cov, mean_var, cov_var)`` of the level's term ``P_ℓ − P_{ℓ−1}`` (``P_0`` at level 0)."""
+    def _sets(self, level: int):
         xp = array_module(self.paths[level])
-        sets = [xp.concatenate(parts) for parts in zip(*self.paths[level], strict=True)]
-        return paired_moments(sets, self.weights(level))
+        return [xp.concatenate(parts) for parts in zip(*self.paths[level], strict=True)]
+
+    def coefficients(self):
+        """``(β_mean, β_cov)`` of the control, fitted on level 0's samples (the control's module) and used on every
+        level, so that the levels telescope to ``E[Y_L − β C_L]``."""
+        assert self.control is not None
+        if self._fitted is None or self._fitted[0] != self.count(0):
+            sets, w = self._sets(0), self.weights(0)
+            half = len(w)
+            beta = fitted_controls(sets[:half], sets[half:], w)[2]
+            self._fitted = (self.count(0), beta)
+        return self._fitted[1]
+
+    def _all_weights(self, level: int):
+        """``(mean weights, cov weights)`` of every set of the level: ``w`` on the system's, ``−β w`` on the
+        control's."""
+        w = self.weights(level)
+        if self.control is None:
+            return w, w
+        beta_m, beta_c = self.coefficients()
+        return w + [-beta_m * x for x in w], w + [-beta_c * x for x in w]
+
+    def exact(self):
+        """The control's exact moments ``(ts, mean, cov)`` and their tangents in ``wrt`` (computed once)."""
+        assert self.control is not None
+        if self._exact is None:
+            save, wrt = self.opts["save"], self.opts["wrt"]
+            t0, t1 = self.opts["t0"], self.opts["t1"]
+            on_host = array_module(self.paths[0]) is np
+            self._exact = self.control.exact(self.args[0], save.names, t0, t1, self.steps0, save.n, wrt, on_host)
+        return self._exact
+
+    def moments(self, level: int):
+        """``(mean, cov, mean_var, cov_var)`` of the level's term ``P_ℓ − P_{ℓ−1}`` (``P_0`` at level 0); with a
+        control, ``P = Y − β C`` and level 0 adds ``β E C``."""
+        mean, cov, mean_var, cov_var = paired_moments(self._sets(level), *self._all_weights(level))
+        if self.control is not None and level == 0:
+            (_, exact_mean, exact_cov), _ = self.exact()
+            beta_m, beta_c = self.coefficients()
+            mean, cov = mean + beta_m * exact_mean, cov + beta_c * exact_cov
+        return mean, cov, mean_var, cov_var
 
     def sensitivities(self, level: int):
-        """``(d_mean, d_cov, d_mean_var, d_cov_var)`` of the level's term in the parameters ``wrt``."""
+        """``(d_mean, d_cov, d_mean_var, d_cov_var)`` of the level's term in the parameters ``wrt`` (β held
+        fixed, as the control's module)."""
         xp = array_module(self.paths[level], self.tangents[level])
-        sets = [xp.concatenate(parts) for parts in zip(*self.paths[level], strict=True)]
         tangents = [xp.concatenate(parts, axis=1) for parts in zip(*self.tangents[level], strict=True)]
-        return paired_sensitivities(sets, tangents, self.weights(level))
+        d_mean, d_cov, d_mean_var, d_cov_var = paired_sensitivities(
+            self._sets(level), tangents, *self._all_weights(level)
+        )
+        if self.control is not None and level == 0:
+            _, d_exact = self.exact()
+            assert d_exact is not None  # with wrt
+            _, d_exact_mean, d_exact_cov = d_exact
+            beta_m, beta_c = self.coefficients()
+            d_mean, d_cov = d_mean + beta_m * d_exact_mean, d_cov + beta_c * d_exact_cov
+        return d_mean, d_cov, d_mean_var, d_cov_var
 
 
 def multilevel_monte_carlo(
@@ -181,6 +237,7 @@ def multilevel_monte_carlo(
     save: Save | None = None,
     weak_order: float | None = None,
     antithetic: bool = False,
+    control=None,
     piece_paths: int = 4096,
     max_levels: int = MAX_LEVELS,
     batching: Batching | None = None,
@@ -201,6 +258,12 @@ def multilevel_monte_carlo(
       :class:`~nhsde.PlatenWeak2`, else 1, which overestimates the bias of a
       second-order scheme and is safe).
     - ``antithetic``: pair every path with its reflection ``W → −W``.
+    - ``control``: ``'mean'`` or a state ``(d,)``: every level's solves also solve the linearised system
+      (:func:`~nhsde.statistics.control_variate`'s ``linearisation``; ``y0`` one state) on the same Brownian path,
+      and the levels telescope ``P = Y − βC`` with one ``β`` per saved entry fitted on level 0, so that
+      ``E[P_L] + β E C = E Y_L − β (E C_L − E C)`` with ``E C`` exact: the bias is ``bias(Y_L) − β bias(C_L)``, as
+      for the plain control variate, and the level variances shrink where the linearisation explains the
+      paths (level 0 above all).  Twice the path-steps (``level_costs``); ``coefficient`` holds ``β``.
     - ``piece_paths``: the smallest run on level 0 (halved per level, at least 64): samples are added in
       multiples of it.
     - ``max_levels``: the most levels to add before giving up.
@@ -252,6 +315,9 @@ def multilevel_monte_carlo(
     statistic.check(save.names)
     key = check_key(key)
     wrt = () if wrt is None else check_wrt(system, wrt)
+    linearised = None
+    if control is not None:
+        linearised = LinearisedControl(system, system.state(y0, "y0"), control, save.names, "control")
     levels = _Levels(
         system,
         y0,
@@ -265,6 +331,7 @@ def multilevel_monte_carlo(
         piece_paths=piece_paths,
         batching=batching,
         wrt=wrt,
+        control=linearised,
     )
 
     if n_paths is not None:
@@ -323,6 +390,7 @@ def multilevel_monte_carlo(
         derivatives=derivatives,
         cost=watch.cost(sum(n * c for n, c in zip(counts, level_costs))),
         statistic=statistic,
+        coefficient=None if linearised is None else PerEntry(*levels.coefficients()),
     )
     return on_device(estimate, levels.paths[0][0][0].dtype)
 

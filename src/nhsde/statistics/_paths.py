@@ -54,14 +54,16 @@ def safe_sqrt(v):
     return xp.where(pos, xp.sqrt(xp.where(pos, v, 1.0)), 0.0)
 
 
-def paired_moments(paths: Sequence[Values], weights: Sequence):
+def paired_moments(paths: Sequence[Values], weights: Sequence, cov_weights: Sequence | None = None):
     """``(mean, cov, mean_var, cov_var)`` of ``Σ_a w_a S(Z_a)``, ``Z_a`` ``(N, n, k)`` values of the same paths.
 
     ``S`` is the sample mean or the unbiased sample covariance; ``*_var`` are the
-    squared standard errors (see the module).  Concrete values are reduced on the host in float64
-    (:func:`array_module`).
+    squared standard errors (see the module).  Weights are numbers or arrays per entry (``(n, k)`` for the mean,
+    ``(n, k, k)`` for the covariance: ``cov_weights``, default ``weights``).  Concrete values are reduced on the
+    host in float64 (:func:`array_module`).
     """
-    xp = array_module(paths, weights)
+    cov_weights = weights if cov_weights is None else cov_weights
+    xp = array_module(paths, weights, cov_weights)
     if xp is np:
         paths = [np.asarray(z, np.float64) for z in paths]
     n = paths[0].shape[0]
@@ -71,10 +73,10 @@ def paired_moments(paths: Sequence[Values], weights: Sequence):
     centred = [z - xp.mean(z, axis=0) for z in paths]
     cov = xp.zeros(mean.shape + mean.shape[-1:], mean.dtype)
     second, pair = xp.zeros_like(cov), xp.zeros_like(cov)
-    for w, f in zip(weights, centred, strict=True):
+    for w, f in zip(cov_weights, centred, strict=True):
         cov = cov + w * xp.einsum("pni,pnj->nij", f, f) / (n - 1)
-    for wa, fa in zip(weights, centred, strict=True):
-        for wb, fb in zip(weights, centred, strict=True):
+    for wa, fa in zip(cov_weights, centred, strict=True):
+        for wb, fb in zip(cov_weights, centred, strict=True):
             prod = fa * fb
             second = second + wa * wb * xp.einsum("pni,pnj->nij", prod, prod) / n
             cross = xp.einsum("pni,pnj->nij", fa, fb) / n  # C^{ab}_ij = cov(Z_a,i, Z_b,j), central

@@ -21,7 +21,7 @@ from ._estimate import AbstractStatistic
 from ._paths import coupled_paths, coupling_solver, paired_moments
 from ._report import PilotSummary
 
-__all__ = ["Candidate", "candidate", "pick_moments", "pilot_rate", "run_pilot"]
+__all__ = ["Candidate", "candidate", "level_bias_bound", "pick_moments", "pilot_rate", "run_pilot"]
 
 
 # --- the statistic --------------------------------------------------------------------------------------------
@@ -86,6 +86,17 @@ def _pilot_paths(system, y0, key, cand: Candidate, *, t0, t1, h0, levels, n_path
     return paths, float(n_paths * (2 if anti else 1) * sum(steps0 * 2**ell for ell in range(levels)))
 
 
+def level_bias_bound(terms, variances, h0: float, p: int) -> float:
+    """``|C|`` bounded from the two finest level terms ``Ŷ_ℓ = S(h_ℓ) − S(h_{ℓ−1}) ≈ −C h_ℓ^p (2^p − 1)`` (``terms``
+    for ``ℓ = 1 … L``, squared standard errors ``variances``): ``max_ℓ (|Ŷ_ℓ| + 2 SE_ℓ)/(h_ℓ^p (2^p − 1))``."""
+    levels = len(terms)
+    return max(
+        (abs(y) + 2 * math.sqrt(max(var, 0.0))) / ((h0 / 2**ell) ** p * (2**p - 1))
+        for ell, y, var in zip(range(1, levels + 1), terms, variances)
+        if ell >= levels - 1
+    )
+
+
 def pilot_rate(system, y0, key, cand: Candidate, **options) -> tuple[float, float]:
     """``(seconds per path-step, path-steps)`` of one more run of ``cand``'s pilot (``run_pilot``'s ``options``),
     compiled by the pilot: its programs' own speed, for comparing solvers whose path-steps cost differently."""
@@ -129,11 +140,6 @@ def run_pilot(system, y0, key, cand: Candidate, *, statistic, timed, **options):
     )
     p = cand.order
     scale = 2**p - 1
-    finest = diffs[-2:]  # Ŷ_ℓ for the two finest ℓ
-    bounds = [
-        (abs(y) + 2 * math.sqrt(var)) / (dts[ell] ** p * scale)
-        for ell, (y, var) in zip(range(levels - len(finest), levels), finest)
-    ]
     y_fine = diffs[-1][0]
     c_signed = -y_fine / (dts[-1] ** p * scale)
     # extrapolation: variance of the finest pair's combination, residual bias from two extrapolations
@@ -158,7 +164,7 @@ def run_pilot(system, y0, key, cand: Candidate, *, statistic, timed, **options):
         level_variances=level_vars,
         antithetic_level_variances=anti_levels,
         bias_constant=c_signed,
-        bias_bound=max(bounds),
+        bias_bound=level_bias_bound([y for y, _ in diffs], [var for _, var in diffs], dts[0], p),
         extrapolation_variance=ex_var,
         antithetic_extrapolation_variance=ex_anti,
         extrapolation_constant=ex_signed,
