@@ -7,7 +7,7 @@ errors ``Σ e_i²/ε²`` is stochastically below ``χ²_n`` (for a fixed MSE a b
 of ``Σ e_i²`` is ``2nε⁴`` with no bias, ``2n(ε⁴ − b⁴)`` with bias ``b``).  So ``√(Σ e_i²/n) ≤ ε √(χ²_{n,0.99}/n)``
 holds with probability ≥ 99 % for each estimator: ≈ 1.37 ε for n = 20, ≈ 1.74 ε for n = 5.  The keys are fixed
 (``jax.random.key(1000 + i)``), so the outcome is deterministic; a failure means a promise broken at 99 %
-confidence (with fourteen estimators in the slow test, about 13 % of all sets of keys would fail one by chance
+confidence (with sixteen estimators in the slow test, about 15 % of all sets of keys would fail one by chance
 alone).
 """
 
@@ -45,6 +45,8 @@ ESTIMATORS = {
     "multilevel-euler": Multilevel("euler"),
     "multilevel-weak2": Multilevel(GAUSS),
     "multilevel-weak2-anti": Multilevel(GAUSS, antithetic=True),
+    "multilevel-euler-control": Multilevel("euler", control=True),
+    "multilevel-weak2-control": Multilevel(GAUSS, control=True),
     "control-variate": ControlVariate(),
     "qmc": QuasiMonteCarlo(),
     "qmc-weak2": QuasiMonteCarlo(GAUSS),
