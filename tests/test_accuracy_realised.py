@@ -7,7 +7,7 @@ errors ``Σ e_i²/ε²`` is stochastically below ``χ²_n`` (for a fixed MSE a b
 of ``Σ e_i²`` is ``2nε⁴`` with no bias, ``2n(ε⁴ − b⁴)`` with bias ``b``).  So ``√(Σ e_i²/n) ≤ ε √(χ²_{n,0.99}/n)``
 holds with probability ≥ 99 % for each estimator: ≈ 1.37 ε for n = 20, ≈ 1.74 ε for n = 5.  The keys are fixed
 (``jax.random.key(1000 + i)``), so the outcome is deterministic; a failure means a promise broken at 99 %
-confidence (with sixteen estimators in the slow test, about 15 % of all sets of keys would fail one by chance
+confidence (with eighteen estimators in the slow test, about 17 % of all sets of keys would fail one by chance
 alone).
 """
 
@@ -54,6 +54,8 @@ ESTIMATORS = {
     "multilevel-heun2": Multilevel("heun2"),
     "mlqmc": MultilevelQuasiMonteCarlo(),
     "mlqmc-weak2": MultilevelQuasiMonteCarlo(GAUSS),
+    "qmc-weak2-control": QuasiMonteCarlo(GAUSS, control=True),
+    "mlqmc-weak2-control": MultilevelQuasiMonteCarlo(GAUSS, control=True),
 }
 
 

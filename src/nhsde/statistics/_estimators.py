@@ -16,7 +16,7 @@ import abc
 import dataclasses
 import math
 import time
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import diffrax as dfx
 import jax
@@ -40,6 +40,7 @@ from ._variance_reduction import check_reflectable
 
 __all__ = [
     "AbstractEstimator",
+    "ControlPilot",
     "ControlVariate",
     "Multilevel",
     "MultilevelQuasiMonteCarlo",
@@ -48,6 +49,17 @@ __all__ = [
     "QuasiMonteCarlo",
     "Richardson",
 ]
+
+
+@dataclasses.dataclass(frozen=True)
+class ControlPilot:
+    """What the controlled pilot of one solver measured (:meth:`Pricing.control_pilot`): the multilevel estimator
+    with the control (``Y − βC``) at ``pilot_paths`` samples on each pilot level, its level variances ``V_ℓ`` and
+    the bias model ``E[Y(h) − β(C(h) − E C)] − S ≈ C h^p`` of its level terms, bounded as the solver's pilot does."""
+
+    level_variances: tuple[float, ...]
+    bias_bound: float
+    bias_constant: float
 
 
 @dataclasses.dataclass
@@ -74,6 +86,7 @@ class Pricing:
     pilot_keys: dict[str, int]  # per solver label, the index its pilot key is folded with
     antithetic_pilots: frozenset[str]  # the solver labels whose pilots also run the reflected paths
     pilots: dict[str, PilotSummary] = dataclasses.field(default_factory=dict)
+    control_pilots: dict[tuple[str, bool], ControlPilot] = dataclasses.field(default_factory=dict)
 
     def pilot(self, cand: Candidate) -> PilotSummary:
         """The pilot of ``cand`` at ``h0`` (run on first use; raises where its paths fail)."""
@@ -88,6 +101,38 @@ class Pricing:
                 **self._pilot_options(cand),
             )
         return self.pilots[cand.label]
+
+    def control_pilot(self, cand: Candidate, antithetic: bool) -> tuple[ControlPilot, float]:
+        """The controlled pilot of ``cand`` (:class:`ControlPilot`; run on first use, raises where its paths fail)
+        and the path-steps it took now (0 when it had run)."""
+        label = (cand.label, antithetic)
+        if label in self.control_pilots:
+            return self.control_pilots[label], 0.0
+        res = multilevel_monte_carlo(
+            self.system,
+            self.y0,
+            fold_key(self._pilot_key(cand), 96),
+            n_paths=(self.pilot_paths,) * self.pilot_levels,
+            dt=self.h0,
+            solver=cand.solver,
+            weak_order=cand.order,
+            antithetic=antithetic,
+            control="mean",
+            piece_paths=self.pilot_paths,
+            statistic=self.statistic,
+            **self.run_options(tangents=False),
+        )
+        variances = tuple(float(v) for v in res.level_variances)
+        terms = [float(m) for m in res.level_means[1:]]
+        h_fine = self.h0 / 2 ** (self.pilot_levels - 1)
+        p = cand.order
+        pilot = ControlPilot(
+            variances,
+            level_bias_bound(terms, [v / self.pilot_paths for v in variances[1:]], self.h0, p),
+            -terms[-1] / (h_fine**p * (2**p - 1)),  # Ŷ_L ≈ −C h_L^p (2^p − 1)
+        )
+        self.control_pilots[label] = pilot
+        return pilot, res.cost.path_steps
 
     def time_pilot(self, cand: Candidate) -> None:
         """Give ``cand``'s pilot its measured seconds per path-step (one more run of its compiled programs, its work
@@ -127,6 +172,7 @@ class AbstractEstimator(abc.ABC):
     solver: str | dfx.AbstractSolver
     weak_order: int | None
     antithetic: bool
+    control: bool = False  # the linearised system as a control variate inside it (where it has the field)
     method: str  # its name in the report
 
     @property
@@ -136,7 +182,8 @@ class AbstractEstimator(abc.ABC):
 
     @property
     def name(self) -> str:
-        return f"{self.method}, {self.candidate.label}{', antithetic' if self.antithetic else ''}"
+        extras = (", antithetic" if self.antithetic else "") + (", control variate" if self.control else "")
+        return f"{self.method}, {self.candidate.label}{extras}"
 
     @property
     def own_pilot(self) -> bool:
@@ -148,6 +195,8 @@ class AbstractEstimator(abc.ABC):
         self.candidate.check(system)
         if self.antithetic:
             check_reflectable(system.noise, repr(self))
+        if self.control and not system.noise.continuous:
+            raise ValueError(f"{self!r}: the control variate needs a Wiener driver here (a Gaussian control).")
 
     def applies(self, pricing: Pricing) -> str | None:
         """Why it does not apply at this step (``None`` where it does)."""
@@ -265,8 +314,7 @@ class Multilevel(AbstractEstimator):
     ``|C| h_L^p ≤ ε/√2``, ``V_ℓ`` beyond the pilot decaying at its rate, ``N_ℓ ∝ √(V_ℓ/C_ℓ)``, in whole pieces; run
     with that allocation fixed (an allocation adapted from its own samples stops early on low variance estimates,
     biasing a covariance low).  ``control``: every level also solves the linearised system as a control variate
-    (``control='mean'``); it prices from a pilot of its own, the estimator itself at ``pilot_paths`` samples per
-    pilot level, whose level terms give ``V_ℓ`` and ``|C|`` as the solver's pilot does."""
+    (``control='mean'``), priced from the controlled pilot (:class:`ControlPilot`)."""
 
     solver: str | dfx.AbstractSolver = "euler"
     weak_order: int | None = None
@@ -275,35 +323,16 @@ class Multilevel(AbstractEstimator):
     method: str = dataclasses.field(default="multilevel", init=False, repr=False)
 
     @property
-    def name(self) -> str:
-        return super().name + (", control variate" if self.control else "")
-
-    @property
     def own_pilot(self) -> bool:
         return self.control
 
-    def check(self, system: StochasticSystem) -> None:
-        super().check(system)
-        if self.control and not system.noise.continuous:
-            raise ValueError(f"{self!r}: the control needs a Wiener driver to price its statistic (Isserlis).")
-
     def _levels(self, pricing: Pricing) -> tuple[tuple[float, ...], float, float]:
-        """``(V_ℓ, |C| bound, pilot work)``: the solver's pilot, or with the control its own."""
+        """``(V_ℓ, |C| bound, pilot work done now)``: the solver's pilot, or with the control the controlled one."""
         if not self.control:
             p = pricing.pilot(self.candidate)
             return _variances(p, self.antithetic)[2], p.bias_bound, 0.0
-        pilot = self._run(
-            pricing,
-            fold_key(pricing.pilot_key, 98),
-            (pricing.pilot_paths,) * pricing.pilot_levels,
-            None,
-            pricing.run_options(tangents=False),
-        )
-        variances = [float(v) for v in pilot.level_variances]
-        terms = [float(m) for m in pilot.level_means[1:]]
-        n = pricing.pilot_paths
-        bound = level_bias_bound(terms, [v / n for v in variances[1:]], pricing.h0, self.candidate.order)
-        return tuple(variances), bound, pilot.cost.path_steps
+        pilot, work = pricing.control_pilot(self.candidate, self.antithetic)
+        return pilot.level_variances, pilot.bias_bound, work
 
     def predict(self, pricing: Pricing) -> AccuracyAlternative:
         try:
@@ -326,24 +355,21 @@ class Multilevel(AbstractEstimator):
             self.name, c, dt=pricing.h0, n_paths=counts, note=note, piece_paths=piece, pilot_work=work, estimator=self
         )
 
-    def _run(self, pricing: Pricing, key, counts, piece_paths, options) -> MultilevelEstimate:
-        return multilevel_monte_carlo(
+    def run(self, pricing: Pricing, plan: AccuracyAlternative) -> tuple[AbstractEstimate, float]:
+        res = multilevel_monte_carlo(
             pricing.system,
             pricing.y0,
-            key,
-            n_paths=counts,
-            dt=pricing.h0,
+            pricing.run_key,
+            n_paths=plan.n_paths,
+            dt=plan.dt,
             solver=self.solver,
             weak_order=self.candidate.order,
             antithetic=self.antithetic,
             control="mean" if self.control else None,
-            piece_paths=piece_paths or min(counts),
+            piece_paths=plan.piece_paths,
             statistic=pricing.statistic,
-            **options,
+            **pricing.run_options(),
         )
-
-    def run(self, pricing: Pricing, plan: AccuracyAlternative) -> tuple[AbstractEstimate, float]:
-        res = self._run(pricing, pricing.run_key, plan.n_paths, plan.piece_paths, pricing.run_options())
         return res, float(res.bias)
 
     def kept_samples(self, plan: AccuracyAlternative) -> float:
@@ -448,6 +474,14 @@ class _QmcPilot:
         return out
 
 
+class _BiasModel(NamedTuple):
+    """``E S(h) − S ≈ constant h^order``, ``|constant| ≤ bound``."""
+
+    bound: float
+    constant: float
+    order: int
+
+
 def _level_variances(res: MultilevelEstimate) -> list[float]:
     """The variance of each level's estimate (``V̂_ℓ``, from the scramblings' spread)."""
     return [float(v) / n for v, n in zip(res.level_variances, res.n_paths_per_level, strict=True)]
@@ -473,6 +507,21 @@ class _AbstractQuasiMonteCarlo(AbstractEstimator):
 
     pilot_fold: ClassVar[int]  # the pilot key's fold index, its own
 
+    @property
+    def copies(self) -> int:
+        """Solves per point: the reflected paths and the control each double them."""
+        return (2 if self.antithetic else 1) * (2 if self.control else 1)
+
+    def _bias_model(self, pricing: Pricing) -> tuple[_BiasModel, float]:
+        """Its bias model and the pilot work done for it now: the solver's pilot's (every path has the law of a
+        Monte-Carlo path, so the scheme's bias is unchanged), or with the control the controlled pilot's (the
+        bias of ``Y − β(C − E C)``, :class:`ControlPilot`)."""
+        own = pricing.pilot(self.candidate)
+        if not self.control:
+            return _BiasModel(own.bias_bound, own.bias_constant, own.order), 0.0
+        pilot, work = pricing.control_pilot(self.candidate, False)
+        return _BiasModel(pilot.bias_bound, pilot.bias_constant, own.order), work
+
     def _pilot(self, pricing: Pricing, h: float, n_levels: int) -> _QmcPilot | tuple[str, float]:
         """The pilot on ``n_levels`` levels from the step ``h``, or why it failed and its work."""
         key = fold_key(pricing.pilot_key, self.pilot_fold)
@@ -489,7 +538,7 @@ class _AbstractQuasiMonteCarlo(AbstractEstimator):
             second, seconds = run(fold_key(key, 1), 2 * n_q)  # compiled now: timed, and twice the points
         except (ValueError, TypeError, SimulationError) as e:  # paths blowing up: not at this step
             return f"does not apply: {str(e).splitlines()[0][:200]}", 0.0
-        path_steps = (2 if self.antithetic else 1) * second.cost.path_steps
+        path_steps = self.copies * second.cost.path_steps
         # κ against plain Monte Carlo with the solver at the finest pilot step, in the compiled program its other
         # alternatives run (its pilot compiled it), in either cost mode: with cost='seconds' every alternative's
         # seconds are its path-steps times its pilot's rate, so quasi-Monte Carlo's must be too, via κ
@@ -535,22 +584,23 @@ class _AbstractQuasiMonteCarlo(AbstractEstimator):
             batching=pricing.batching,
             wrt=wrt,
             antithetic=self.antithetic,
+            control="mean" if self.control else None,
         )
 
     def run(self, pricing: Pricing, plan: AccuracyAlternative) -> tuple[AbstractEstimate, float]:
         """The points doubled until the standard error meets the target with the bias bound at the finest step,
         ``SE² (1 + √(2/(R − 1))) ≤ ε² − (|C| h_L^p)²`` (a margin of one standard error of the variance estimate);
         the plan's counts, at the slowest rate, are the most.  With ``wrt``, the derivatives from the same points."""
-        own = pricing.pilots[self.candidate.label]
+        model, _ = self._bias_model(pricing)  # priced: no pilot runs now
         h_fine = plan.dt / 2 ** (len(plan.n_paths) - 1)
-        budget = pricing.rmse**2 - bias(own.bias_bound, h_fine, own.order) ** 2
+        budget = pricing.rmse**2 - bias(model.bound, h_fine, model.order) ** 2
         most = tuple(n // QMC_REPLICATES for n in plan.n_paths)
         key = pricing.run_key
         res = self._points(pricing, key, plan.dt, variance=budget / QMC_MARGIN, max_points=most, wrt=pricing.wrt)
         return res, plan.bias
 
     def kept_samples(self, plan: AccuracyAlternative) -> float:
-        solves = (2 if self.antithetic else 1) * (2 if len(plan.n_paths) > 1 else 1)  # a level's fine and coarse
+        solves = self.copies * (2 if len(plan.n_paths) > 1 else 1)  # a level's fine and coarse
         return solves * min(max(plan.n_paths), RUN_LIMIT)  # one run's values at a time, reduced into sums
 
 
@@ -559,7 +609,8 @@ class QuasiMonteCarlo(_AbstractQuasiMonteCarlo):
     """Randomised quasi-Monte Carlo (16 scrambled Sobol' point sets through a Brownian bridge) with ``solver``:
     Euler (``p = 1``) or :class:`~nhsde.PlatenWeak2` with Gaussian increments (``p = 2``; ``W`` from the points);
     ``antithetic``: each point also solved with its increments reflected, its value the pair's average (work
-    doubled).
+    doubled); ``control``: the linearised system solved on the same points as a control variate (work doubled,
+    its bias model the controlled pilot's, :class:`ControlPilot`).
 
     Pilot: ``n_q`` and then ``2 n_q`` points per scrambling (``pilot_paths/16`` rounded down to a power of two,
     ≥ 64) at the finest pilot step, the second run timed.  Between the two counts its variance falls as
@@ -575,16 +626,17 @@ class QuasiMonteCarlo(_AbstractQuasiMonteCarlo):
     solver: str | dfx.AbstractSolver = "euler"
     weak_order: int | None = None
     antithetic: bool = False
+    control: bool = False
     method: str = dataclasses.field(default="quasi-Monte Carlo", init=False, repr=False)
     pilot_fold: ClassVar[int] = 98
 
     def predict(self, pricing: Pricing) -> AccuracyAlternative:
-        own = pricing.pilot(self.candidate)
+        model, model_work = self._bias_model(pricing)
         h_b = pricing.h0 / 2 ** (pricing.pilot_levels - 1)
         pilot = self._pilot(pricing, h_b, 1)
         if isinstance(pilot, tuple):
-            return self.row(*pilot)
-        n_q, work = pilot.n_q, pilot.work
+            return self.row(pilot[0], pilot[1] + model_work)
+        n_q, work = pilot.n_q, pilot.work + model_work
         ((a, rate),) = pilot.rates(pricing.statistic)
 
         def per_replicate(n: float, beta: float | None = None) -> int:
@@ -596,19 +648,19 @@ class QuasiMonteCarlo(_AbstractQuasiMonteCarlo):
         variance = a * (2 * n_q) ** -rate * QMC_REPLICATES * 2 * n_q  # per point, at the Monte-Carlo rate
         cost, k, _, _ = best_single(
             variance,
-            own.bias_bound,
-            own.order,
+            model.bound,
+            model.order,
             pricing.rmse,
             pricing.h0,
             pricing.steps0,
-            (2 if self.antithetic else 1) * pilot.kappa,
+            self.copies * pilot.kappa,
             _finest(pricing),
             lambda n: QMC_REPLICATES * per_replicate(n, rate),
         )
         if k < 0:
             return self.row("no step reaches the target within the Sobol' dimensions", work)
         h = pricing.h0 / 2**k
-        b = bias(own.bias_bound, h, own.order)
+        b = bias(model.bound, h, model.order)
         most = per_replicate(variance / ((pricing.rmse - b) * (pricing.rmse + b)))  # the run's cap
         if most > KEY_PATHS // QMC_REPLICATES:
             note = f"needs {most:.3g} points per scrambling, more than the {KEY_PATHS // QMC_REPLICATES} a run indexes"
@@ -619,7 +671,7 @@ class QuasiMonteCarlo(_AbstractQuasiMonteCarlo):
             cost,
             dt=h,
             n_paths=(QMC_REPLICATES * most,),
-            bias=own.bias_constant * h**own.order,  # E S(h) − S ≈ C h^p, the solver's
+            bias=model.constant * h**model.order,  # E S(h) − S ≈ C h^p
             note=f"16 × {expected} points expected (variance ∝ N^−{rate:.2g}), at most 16 × {most}, "
             f"κ = {pilot.kappa:.3g}",
             pilot_work=work,
@@ -640,33 +692,34 @@ class MultilevelQuasiMonteCarlo(_AbstractQuasiMonteCarlo):
     ``N_ℓ = (λ β_ℓ a_ℓ / C_ℓ)^{1/(1 + β_ℓ)}`` (the least work ``Σ N_ℓ C_ℓ`` with ``Σ a_ℓ N_ℓ^{−β_ℓ}`` at the budget,
     ``λ`` by bisection), powers of two; the cheapest ``L`` within the pilot program's Sobol' dimensions.  The run
     doubles points where the variance per unit of work is largest until its own standard error meets the target,
-    each level at most its count at the Monte-Carlo rate (Giles's allocation, ``β = 1``)."""
+    each level at most its count at the Monte-Carlo rate (Giles's allocation, ``β = 1``).  ``control`` as for
+    :class:`QuasiMonteCarlo`."""
 
     solver: str | dfx.AbstractSolver = "euler"
     weak_order: int | None = None
     antithetic: bool = False
+    control: bool = False
     method: str = dataclasses.field(default="multilevel quasi-Monte Carlo", init=False, repr=False)
     pilot_fold: ClassVar[int] = 97
 
     def predict(self, pricing: Pricing) -> AccuracyAlternative:
-        own = pricing.pilot(self.candidate)
+        model, model_work = self._bias_model(pricing)
         m = pricing.pilot_levels
         pilot = self._pilot(pricing, pricing.h0, m)
         if isinstance(pilot, tuple):
-            return self.row(*pilot)
+            return self.row(pilot[0], pilot[1] + model_work)
         rates = pilot.rates(pricing.statistic)
         v2 = _level_variances(pilot.second)
         decay = min(max(math.log2(v2[-2] / v2[-1]), 1.0), 2.0)
-        pairs = 2 if self.antithetic else 1
         best: tuple[float, tuple[int, ...], tuple[int, ...], int] = (math.inf, (), (), 0)
         for top in range(1, min(m - 1 + QMC_FINER, _finest(pricing)) + 1):
-            b = bias(own.bias_bound, pricing.h0 / 2**top, own.order)
+            b = bias(model.bound, pricing.h0 / 2**top, model.order)
             if not b < pricing.rmse:
                 continue
             budget = (pricing.rmse - b) * (pricing.rmse + b)
             levels = [rates[min(ell, m - 1)] for ell in range(top + 1)]
             levels = [(a * 2 ** (-decay * max(0, ell - m + 1)), beta) for ell, (a, beta) in enumerate(levels)]
-            costs = [pairs * level_cost(pricing.steps0, ell, False) for ell in range(top + 1)]
+            costs = [self.copies * level_cost(pricing.steps0, ell, False) for ell in range(top + 1)]
             expected = [_power_of_two(n) for n in _allocate_at_rates(levels, costs, budget)]
             mc = [a * (2 * pilot.n_q) ** -beta * 2 * pilot.n_q for a, beta in levels]  # per point, the MC rate
             most = [max(e, _power_of_two(n)) for e, n in zip(expected, allocate(mc, costs, math.sqrt(2 * budget)))]
@@ -675,17 +728,17 @@ class MultilevelQuasiMonteCarlo(_AbstractQuasiMonteCarlo):
                 best = (cost, tuple(expected), tuple(most), top)
         cost, expected, most, top = best
         if not expected:
-            return self.row("no level count reaches the target within the Sobol' dimensions", pilot.work)
+            return self.row("no level count reaches the target within the Sobol' dimensions", pilot.work + model_work)
         h_fine = pricing.h0 / 2**top
         return AccuracyAlternative(
             self.name,
             cost,
             dt=pricing.h0,
             n_paths=tuple(QMC_REPLICATES * n for n in most),
-            bias=own.bias_constant * h_fine**own.order,
+            bias=model.constant * h_fine**model.order,
             note=f"{top + 1} levels, 16 × {list(expected)} points expected, at most 16 × {list(most)}, "
             f"κ = {pilot.kappa:.3g}",
-            pilot_work=pilot.work,
+            pilot_work=pilot.work + model_work,
             kappa=pilot.kappa,
             estimator=self,
         )

@@ -40,6 +40,7 @@ from .._misc import check_key, check_number, check_span, check_steps, fold_key, 
 from .._options import AbstractSteps, Batching
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
+from ._control_variate import LinearisedControl, PerEntry
 from ._cost import MAX_LEVELS, level_cost
 from ._estimate import AbstractStatistic, Derivatives, Stopwatch, as_statistic
 from ._multilevel import MultilevelEstimate, bias_estimate
@@ -108,9 +109,27 @@ class _QmcLevels:
     point set ``1 − u``), and its outer product the average of the two paths' (so covariances stay unbiased)."""
 
     def __init__(
-        self, system, y0, key, *, t0, t1, h0, solver, save, replicates, dimension, batching, wrt=(), antithetic=False
+        self,
+        system,
+        y0,
+        key,
+        *,
+        t0,
+        t1,
+        h0,
+        solver,
+        save,
+        replicates,
+        dimension,
+        batching,
+        wrt=(),
+        antithetic=False,
+        control: LinearisedControl | None = None,
     ):
         self.system, self.y0, self.key, self.wrt, self.antithetic = system, y0, key, wrt, antithetic
+        self.control = control
+        self._fitted: tuple[int, tuple] | None = None  # (level-0 points, (β_mean, β_cov)) of the control
+        self._exact_moments = None
         self.opts = dict(t0=t0, t1=t1, solver=solver, save=save, batching=batching)
         self.h0, self.replicates, self.dimension = h0, replicates, dimension
         self.steps0 = round((t1 - t0) / h0)
@@ -121,7 +140,7 @@ class _QmcLevels:
         self.drivers: list[_LevelSobol] = []
 
     def cost(self, level: int) -> float:
-        return level_cost(self.steps0, level, self.antithetic)
+        return level_cost(self.steps0, level, self.antithetic, self.control is not None)
 
     def driver(self, level: int) -> _LevelSobol:
         while len(self.drivers) <= level:
@@ -142,70 +161,142 @@ class _QmcLevels:
                 f"level {level}: {n_points} points × {r} scramblings exceed the {KEY_PATHS} paths a run indexes; "
                 "raise rmse."
             )
-        driven = eqx.tree_at(lambda s: s.noise, self.system, self.driver(level))
+        solved = [(self.system, self.y0)]
+        if self.control is not None:  # the control on the same points: its solves' sums follow the system's
+            solved.append((self.control.system, self.control.start))
         h = self.h0 / 2**level
         dts = (h, 2 * h) if level else (h,)
-        first = self.points[level] * r
-        while first < n_points * r:
-            size = min(n_points * r - first, RUN_LIMIT)
-            paths, tangents = coupled_paths(
-                driven,
-                self.y0,
-                fold_key(self.key, level),
-                dts=dts,
-                brownian_dt=h,
-                n_paths=size,
-                first_path=first,
-                antithetic=self.antithetic,
-                wrt=self.wrt,
-                **self.opts,
-            )
-            pairs = 2 if self.antithetic else 1  # a point's value: the average over it and its reflection
-            for a in range(len(dts)):
-                sums = None
-                for i in range(a, len(paths), len(dts)):  # the solve at dts[a], then its reflection's
-                    # path (b·R + r)·BLOCK + lane is point b·BLOCK + lane of scrambling r
-                    z = np.asarray(paths[i], np.float64).reshape(-1, r, BLOCK, *paths[i].shape[1:])
-                    parts = [z.sum(axis=(0, 2)) / pairs, np.einsum("brlni,brlnj->rnij", z, z) / pairs]
-                    if self.wrt:
-                        t = np.asarray(tangents[i], np.float64).reshape(len(self.wrt), *z.shape)
-                        tz = np.einsum("pbrlni,brlnj->prnij", t, z) / pairs
-                        parts += [t.sum(axis=(1, 3)) / pairs, tz + np.swapaxes(tz, -1, -2)]
-                    sums = parts if sums is None else [x + y for x, y in zip(sums, parts, strict=True)]
-                assert sums is not None
-                if a < len(self.sums[level]):
-                    for total, part in zip(self.sums[level][a], sums, strict=True):
-                        total += part
-                else:
-                    self.sums[level].append(sums)
-            first += size
+        for index, (system, y0) in enumerate(solved):
+            driven = eqx.tree_at(lambda s: s.noise, system, self.driver(level))
+            first = self.points[level] * r
+            while first < n_points * r:
+                size = min(n_points * r - first, RUN_LIMIT)
+                paths, tangents = coupled_paths(
+                    driven,
+                    y0,
+                    fold_key(self.key, level),
+                    dts=dts,
+                    brownian_dt=h,
+                    n_paths=size,
+                    first_path=first,
+                    antithetic=self.antithetic,
+                    wrt=self.wrt,
+                    **self.opts,
+                )
+                for a, sums in enumerate(self._reduced(paths, tangents, len(dts))):
+                    slot = index * len(dts) + a
+                    if slot < len(self.sums[level]):
+                        for total, part in zip(self.sums[level][slot], sums, strict=True):
+                            total += part
+                    else:
+                        self.sums[level].append(sums)
+                first += size
         self.points[level] = n_points
+
+    def _reduced(self, paths, tangents, n_dts: int) -> list[list[np.ndarray]]:
+        """Per solve step of ``coupled_paths``' sets, the per-scrambling sums of the values and of their outer
+        products (with ``wrt``, of their tangents), a point's value the average over it and its reflection."""
+        r, pairs = self.replicates, 2 if self.antithetic else 1
+        out = []
+        for a in range(n_dts):
+            sums = None
+            for i in range(a, len(paths), n_dts):  # the solve at dts[a], then its reflection's
+                # path (b·R + r)·BLOCK + lane is point b·BLOCK + lane of scrambling r
+                z = np.asarray(paths[i], np.float64).reshape(-1, r, BLOCK, *paths[i].shape[1:])
+                parts = [z.sum(axis=(0, 2)) / pairs, np.einsum("brlni,brlnj->rnij", z, z) / pairs]
+                if self.wrt:
+                    t = np.asarray(tangents[i], np.float64).reshape(len(self.wrt), *z.shape)
+                    tz = np.einsum("pbrlni,brlnj->prnij", t, z) / pairs
+                    parts += [t.sum(axis=(1, 3)) / pairs, tz + np.swapaxes(tz, -1, -2)]
+                sums = parts if sums is None else [x + y for x, y in zip(sums, parts, strict=True)]
+            assert sums is not None
+            out.append(sums)
+        return out
+
+    def _weights(self, level: int):
+        """``(mean weights, cov weights)`` of the level's solves: ``w`` on the system's, ``−β w`` on the
+        control's."""
+        w = [1.0, -1.0] if level else [1.0]
+        if self.control is None:
+            return w, w
+        beta_m, beta_c = self.coefficients()
+        return w + [-beta_m * x for x in w], w + [-beta_c * x for x in w]
+
+    def _per_replicate(self, level: int, weights, cov_weights):
+        """The level's solves' per-scrambling means and second moments, and the per-scrambling estimates of its
+        term's mean and covariance."""
+        n = self.points[level]
+        per_solve = [[total / n for total in sums] for sums in self.sums[level]]
+        means, seconds = ([p[i] for p in per_solve] for i in (0, 1))
+        per_mean = sum(w * m for w, m in zip(weights, means))
+        per_cov = sum(w * (s - np.einsum("rni,rnj->rnij", m, m)) for w, m, s in zip(cov_weights, means, seconds))
+        return per_solve, per_mean, per_cov
+
+    def coefficients(self):
+        """``(β_mean, β_cov)`` of the control, fitted on level 0's scramblings (the per-scrambling estimates of the
+        system's and the control's term, :func:`._control_variate.fitted_controls`' ``β``) and used on every level."""
+        assert self.control is not None
+        if self._fitted is None or self._fitted[0] != self.points[0]:
+            _, y_mean, y_cov = self._per_replicate(0, [1.0, 0.0], [1.0, 0.0])
+            _, c_mean, c_cov = self._per_replicate(0, [0.0, 1.0], [0.0, 1.0])
+            self._fitted = (self.points[0], (_slope(y_mean, c_mean), _slope(y_cov, c_cov)))
+        return self._fitted[1]
 
     def moments(self, level: int):
         """``(mean, cov, mean_var, cov_var)`` of the level's term (the variances those of the estimates); with
         ``wrt``, then ``(d_mean, d_cov, d_mean_var, d_cov_var)``, the derivatives by the jvp of
-        :func:`._qmc.combine_replicates` and their variances from the scramblings' spread."""
-        n, r = self.points[level], self.replicates
-        weights = (1.0, -1.0) if level else (1.0,)
-        per_solve = [[total / n for total in sums] for sums in self.sums[level]]
-        means, seconds = ([p[i] for p in per_solve] for i in (0, 1))
-        per_mean = sum(w * m for w, m in zip(weights, means))
-        per_cov = sum(w * (s - np.einsum("rni,rnj->rnij", m, m)) for w, m, s in zip(weights, means, seconds))
-        combined = [combine_replicates(_host(m), _host(s)) for m, s in zip(means, seconds)]
+        :func:`._qmc.combine_replicates` and their variances from the scramblings' spread.  With the control, the
+        term of ``Y − βC`` and, on level 0, ``β E C`` added (its variance over ``R − 2`` degrees of freedom: β is
+        fitted there)."""
+        r = self.replicates
+        weights, cov_weights = self._weights(level)
+        per_solve, per_mean, per_cov = self._per_replicate(level, weights, cov_weights)
+        combined = [combine_replicates(_host(p[0]), _host(p[1])) for p in per_solve]
         mean = sum(w * c[0] for w, c in zip(weights, combined))
-        cov = sum(w * c[1] for w, c in zip(weights, combined))
-        out = [mean, cov, np.var(per_mean, axis=0, ddof=1) / r, np.var(per_cov, axis=0, ddof=1) / r]
+        cov = sum(w * c[1] for w, c in zip(cov_weights, combined))
+        dof = r - 2 if self.control is not None and level == 0 else r - 1
+        out = [mean, cov, np.var(per_mean, axis=0, ddof=1) * (r - 1) / dof / r]
+        out.append(np.var(per_cov, axis=0, ddof=1) * (r - 1) / dof / r)
+        exact = self._exact() if self.control is not None and level == 0 else None
+        if exact is not None:
+            (_, exact_mean, exact_cov), _ = exact
+            beta_m, beta_c = self.coefficients()
+            out[0], out[1] = mean + beta_m * exact_mean, cov + beta_c * exact_cov
         if self.wrt:
             d_mean = d_cov = d_per_mean = d_per_cov = 0.0
-            for w, (m, s, dm, ds) in zip(weights, per_solve):
+            for w, cw, (m, s, dm, ds) in zip(weights, cov_weights, per_solve):
                 dm_c, dc_c = jax.vmap(lambda a, b, m=m, s=s: jax.jvp(combine_replicates, (m, s), (a, b))[1])(dm, ds)
                 d_outer = np.einsum("prni,rnj->prnij", dm, m)
                 d_mean = d_mean + w * np.asarray(dm_c)
-                d_cov = d_cov + w * np.asarray(dc_c)
+                d_cov = d_cov + cw * np.asarray(dc_c)
                 d_per_mean = d_per_mean + w * dm
-                d_per_cov = d_per_cov + w * (ds - d_outer - np.swapaxes(d_outer, -1, -2))
-            out += [d_mean, d_cov, np.var(d_per_mean, axis=1, ddof=1) / r, np.var(d_per_cov, axis=1, ddof=1) / r]
+                d_per_cov = d_per_cov + cw * (ds - d_outer - np.swapaxes(d_outer, -1, -2))
+            if exact is not None:
+                assert exact[1] is not None  # with wrt
+                _, d_exact_mean, d_exact_cov = exact[1]
+                beta_m, beta_c = self.coefficients()
+                d_mean, d_cov = d_mean + beta_m * d_exact_mean, d_cov + beta_c * d_exact_cov
+            d_vars = [np.var(d, axis=1, ddof=1) * (r - 1) / dof / r for d in (d_per_mean, d_per_cov)]
+            out += [d_mean, d_cov, *d_vars]
         return tuple(out)
+
+    def _exact(self):
+        """The control's exact moments and their tangents in ``wrt`` (computed once)."""
+        assert self.control is not None
+        if self._exact_moments is None:
+            save = self.opts["save"]
+            self._exact_moments = self.control.exact(
+                self.system, save.names, self.opts["t0"], self.opts["t1"], self.steps0, save.n, self.wrt, True
+            )
+        return self._exact_moments
+
+
+def _slope(y, c) -> np.ndarray:
+    """Per entry, the least-squares ``β = Cov_r(y, c)/Var_r(c)`` over the scramblings (1 where ``c`` does not vary:
+    the control's module)."""
+    yc, cc = y - y.mean(axis=0), c - c.mean(axis=0)
+    var = np.sum(cc * cc, axis=0)
+    return np.where(var > 0, np.sum(yc * cc, axis=0) / np.where(var > 0, var, 1.0), 1.0)
 
 
 def multilevel_quasi_monte_carlo(
@@ -225,6 +316,7 @@ def multilevel_quasi_monte_carlo(
     replicates: int = 16,
     max_levels: int = MAX_LEVELS,
     antithetic: bool = False,
+    control=None,
     batching: Batching | None = None,
     wrt: Sequence[str] | None = None,
 ) -> MultilevelEstimate:
@@ -238,6 +330,10 @@ def multilevel_quasi_monte_carlo(
     - ``replicates``: ``R``, the independent scramblings per level (≥ 2; the variances come from their spread).
     - ``antithetic``: each point also solved with its increments reflected (``W → −W``), its value the pair's
       average (:mod:`._variance_reduction`; twice the path-steps, ``level_costs`` doubled).
+    - ``control``: ``'mean'`` or a state ``(d,)``: the linearised system solved on the same points as a control
+      variate, as in :func:`~nhsde.statistics.multilevel_monte_carlo` (``y0`` one state); ``β`` per saved entry
+      fitted on level 0's scramblings (least squares over their estimates; that level's variance then over
+      ``R − 2`` degrees of freedom) and used on every level, ``coefficient`` holds it; twice the path-steps.
     - ``wrt``: names of scalar parameters: ``derivatives`` of the means and covariances in them, from the points'
       forward-mode tangents reduced per scrambling like the values (each level's term by the jvp of its
       replicate combination), with standard errors from the scramblings' spread, the levels' variances added.
@@ -283,8 +379,11 @@ def multilevel_quasi_monte_carlo(
             f"{MAX_DIMENSION} of the direction numbers; take a larger dt or a shorter t1 − t0."
         )
     replicates = check_number("replicates", replicates, integer=True)
-    if replicates < 2:
-        raise ValueError(f"replicates={replicates}; the level variances need ≥ 2 independent scramblings.")
+    if replicates < (2 if control is None else 3):
+        raise ValueError(
+            f"replicates={replicates}; the level variances need ≥ 2 independent scramblings, ≥ 3 with control=… "
+            "(β is fitted on them)."
+        )
     if not isinstance(antithetic, bool):
         raise TypeError(f"antithetic={antithetic!r}; expected True or False.")
     if weak_order is None:
@@ -308,6 +407,9 @@ def multilevel_quasi_monte_carlo(
     assert save.names is not None
     statistic.check(save.names)
     key = check_key(key)
+    linearised = None
+    if control is not None:
+        linearised = LinearisedControl(system, system.state(y0, "y0"), control, save.names, "control")
     if n_points is not None:
         if not isinstance(n_points, Sequence) or isinstance(n_points, str):
             raise TypeError(f"n_points={n_points!r}; expected one count per level, (N_0, …, N_L).")
@@ -338,6 +440,7 @@ def multilevel_quasi_monte_carlo(
         batching=batching,
         wrt=wrt,
         antithetic=antithetic,
+        control=linearised,
     )
     if n_points is not None:
         for level, n in enumerate(counts):
@@ -393,8 +496,9 @@ def _double(levels: _QmcLevels, moments: list, variance: float, most: Sequence[i
             return
         worst = max(open_levels, key=lambda ell: variances[ell] / (levels.points[ell] * levels.cost(ell)))
         levels.grow(worst, 2 * levels.points[worst])
-        moments[worst] = levels.moments(worst)
-        variances[worst] = float(_pick(statistic, names, moments[worst][2], moments[worst][3]))
+        for ell in range(n_levels) if worst == 0 and levels.control is not None else (worst,):  # β refitted
+            moments[ell] = levels.moments(ell)
+            variances[ell] = float(_pick(statistic, names, moments[ell][2], moments[ell][3]))
 
 
 def _estimate(levels: _QmcLevels, moments, statistic: AbstractStatistic, alpha: float, watch: Stopwatch):
@@ -428,6 +532,7 @@ def _estimate(levels: _QmcLevels, moments, statistic: AbstractStatistic, alpha: 
         derivatives=derivatives,
         cost=watch.cost(sum(n * c for n, c in zip(samples, level_costs))),
         statistic=statistic,
+        coefficient=None if levels.control is None else PerEntry(*levels.coefficients()),
     )
     return on_device(MultilevelEstimate(**fields), jnp.asarray(levels.y0).dtype)
 
@@ -450,6 +555,7 @@ def quasi_monte_carlo_to_variance(
     batching: Batching | None = None,
     wrt: tuple[str, ...] = (),
     antithetic: bool = False,
+    control=None,
 ) -> MultilevelEstimate:
     """Randomised quasi-Monte Carlo on the levels ``h = dt … dt 2^{1−L}`` of the module, ``L = len(max_points)``
     (one level: plain quasi-Monte Carlo at ``dt``): 64 points per scrambling on every level, then the points of the
@@ -457,11 +563,13 @@ def quasi_monte_carlo_to_variance(
     at most ``variance``, or every level ``ℓ`` has ``max_points[ℓ]`` (powers of two).  Every point count runs in the
     compiled programs of the driver's ``dimension`` (≥ the finest level's ``(t1 − t0)/h × channels``; ``save``
     keeps the per-path values); ``bias`` is the levels' estimate (``nan`` for one level); with parameter names
-    ``wrt``, ``derivatives`` from the points' tangents; ``antithetic``: each point with its reflection (as
-    :func:`multilevel_quasi_monte_carlo`).  For the estimators' own checked arguments: a run that stops where it is
-    accurate enough, unlike counts fixed in advance at the Monte-Carlo rate, on levels fixed in advance (their
-    bias bounded by the estimator's pilot)."""
+    ``wrt``, ``derivatives`` from the points' tangents; ``antithetic``: each point with its reflection, ``control``:
+    the linearised system as a control variate (as :func:`multilevel_quasi_monte_carlo`).  For the estimators' own
+    checked arguments: a run that stops where it is accurate enough, unlike counts fixed in advance at the
+    Monte-Carlo rate, on levels fixed in advance (their bias bounded by the estimator's pilot)."""
     watch = Stopwatch()
+    names = save.names
+    assert names is not None and save.paths
     levels = _QmcLevels(
         system,
         y0,
@@ -476,8 +584,8 @@ def quasi_monte_carlo_to_variance(
         batching=batching,
         wrt=wrt,
         antithetic=antithetic,
+        control=None if control is None else LinearisedControl(system, y0, control, names, "control"),
     )
-    assert save.names is not None and save.paths
     for level, most in enumerate(max_points):
         levels.grow(level, min(BLOCK, most))
     moments = [levels.moments(level) for level in range(len(max_points))]
