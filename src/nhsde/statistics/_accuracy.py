@@ -67,6 +67,7 @@ from ._estimators import (
     QuasiMonteCarlo,
     Richardson,
 )
+from ._paths import counted_path_steps
 from ._pilot import Candidate, candidate
 from ._report import AccuracyAlternative, AccuracyResult
 from ._sensitivities import check_wrt
@@ -441,15 +442,14 @@ def to_accuracy(
     if len(ranked) > 1 and key_of(chosen) > 0:
         reason += f", {key_of(ranked[1]) / key_of(chosen):.2g}× below the next, {ranked[1].name}"
     run_watch = Stopwatch()
-    try:
-        estimate, bias = chosen.estimator.run(pricing, chosen)
-    except SimulationError as e:  # a rare path blew up at a step the pilot's paths survived: from half the step
-        if not retry:
-            raise
-        # this attempt's work: the pilots and the run's plan
-        return from_half_step(
-            f"{chosen.name} failed ({str(e).splitlines()[0][:120]})", pilot_work + chosen.cost / chosen.kappa
-        )
+    with counted_path_steps() as solved:
+        try:
+            estimate, bias = chosen.estimator.run(pricing, chosen)
+        except SimulationError as e:  # a rare path blew up at a step the pilot's paths survived: from half the step
+            if not retry:
+                raise
+            # this attempt's work: the pilots and the run's solves up to the one that failed
+            return from_half_step(f"{chosen.name} failed ({str(e).splitlines()[0][:120]})", pilot_work + solved())
     run_cost = run_watch.cost(estimate.cost.path_steps)
     return AccuracyResult(
         statistic=statistic,

@@ -14,7 +14,8 @@ set ``simulate``'s ``covariance_variance``), never zero for a non-degenerate sam
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable, Sequence
+import contextvars
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import jax
@@ -196,6 +197,21 @@ def runs(n_paths: int) -> list[int]:
     return [LARGE_RUN_PATHS] * large + [RUN_PATHS] * -(-rest // RUN_PATHS)
 
 
+_SOLVED = contextvars.ContextVar[list[float] | None]("nhsde_solved_path_steps", default=None)
+
+
+@contextlib.contextmanager
+def counted_path_steps() -> Iterator[Callable[[], float]]:
+    """Within: the path-steps of every estimator solve started (whole runs, surplus paths and failed runs
+    included: the work done), read by the yielded function."""
+    counter = [0.0]
+    token = _SOLVED.set(counter)
+    try:
+        yield lambda: counter[0]
+    finally:
+        _SOLVED.reset(token)
+
+
 def solve_paths(system: StochasticSystem, y0, key, *, first_path: int, n_paths: int, **options) -> Values:
     """Per-path saved values of paths ``first_path … first_path + n_paths − 1`` (:data:`KEY_PATHS` per key) by
     :func:`~nhsde.simulate` with ``options`` (whose ``save`` keeps the paths), in the runs of :func:`runs`;
@@ -241,6 +257,9 @@ def _solve_runs(system: StochasticSystem, y0, key, *, first_path: int, n_paths: 
                 xp = array_module(y0)
                 part = y0[done : done + keep]
                 start_states = xp.concatenate([part, xp.repeat(part[-1:], run - keep, axis=0)])
+            counter = _SOLVED.get()
+            if counter is not None:  # counted before the solve: a run that fails was done all the same
+                counter[0] += run * round((options["t1"] - options.get("t0", 0.0)) / options["steps"].dt)
             with priced_steps():
                 ens = simulate(system, start_states, k, n_paths=run, first_path=start, **options)
             assert ens.paths is not None
