@@ -133,25 +133,6 @@ def test_adaptive_levels_reach_the_target_with_less_work():
     assert controlled.cost.path_steps < plain.cost.path_steps, (controlled.cost, plain.cost)
 
 
-def test_to_accuracy_prices_and_runs_it():
-    """``Multilevel(control=True)`` prices from a pilot of its own (its work counted) and meets a target."""
-    rmse = 0.02 * float(sleigh_energy(EPS, 1.0))
-    res = to_accuracy(
-        SLEIGH,
-        SLEIGH_Y0,
-        jax.random.key(7),
-        t1=T1,
-        statistic=Mean("energy"),
-        rmse=rmse,
-        save=nhsde.Save(names=("energy",), n=2),
-        estimators=(Multilevel(GAUSS, control=True),),
-    )
-    chosen = res.alternatives[0]
-    assert chosen.name == "multilevel, weak2-gaussian, control variate" and chosen.applies, res.report()
-    assert chosen.pilot_work > 0 and res.pilot_cost.path_steps >= chosen.pilot_work
-    assert abs(float(res.value()[0]) - float(sleigh_energy(EPS, 1.0))) <= 4 * rmse
-
-
 def test_bad_controls_are_refused_naming_the_argument():
     with pytest.raises(ValueError, match=r"control='median'; allowed: 'mean'"):
         multilevel_monte_carlo(SLEIGH, SLEIGH_Y0, jax.random.key(0), n_paths=(64,), control="median", **SLEIGH_ARGS)
@@ -222,10 +203,10 @@ def test_inside_qmc_the_sleigh_energy_and_its_derivatives_agree():
     assert est.cost.path_steps == 2 * plain.cost.path_steps
 
 
-@pytest.mark.parametrize("kind", [QuasiMonteCarlo, MultilevelQuasiMonteCarlo])
-def test_to_accuracy_prices_qmc_with_the_control(kind):
-    """``QuasiMonteCarlo(control=True)`` and ``MultilevelQuasiMonteCarlo(control=True)`` price their bias from the
-    controlled pilot (shared) and meet a target."""
+@pytest.mark.parametrize("kind", [Multilevel, QuasiMonteCarlo, MultilevelQuasiMonteCarlo])
+def test_to_accuracy_prices_each_estimator_with_the_control(kind):
+    """``Multilevel``, ``QuasiMonteCarlo`` and ``MultilevelQuasiMonteCarlo`` with ``control=True`` price from the
+    controlled pilot (shared on ``Pricing``, its work counted) and meet a target."""
     rmse = 0.02 * float(sleigh_energy(EPS, 1.0))
     res = to_accuracy(
         SLEIGH,
@@ -239,4 +220,5 @@ def test_to_accuracy_prices_qmc_with_the_control(kind):
     )
     chosen = res.alternatives[0]
     assert chosen.name.endswith("weak2-gaussian, control variate") and chosen.applies, res.report()
+    assert chosen.pilot_work > 0 and res.pilot_cost.path_steps >= chosen.pilot_work
     assert abs(float(res.value()[0]) - float(sleigh_energy(EPS, 1.0))) <= 4 * rmse

@@ -300,3 +300,56 @@ def test_whole_numbers_are_real_parameters():
     assert jnp.issubdtype(scene.params.eps.dtype, jnp.floating)
     ens = nhsde.simulate(scene.build(), scene.initial_state(), KEY, n_paths=64, t1=1.0, dt=0.1)
     assert np.all(np.isfinite(ens.cov))
+
+
+ESTIMATOR_CALLS = {
+    "multilevel_monte_carlo": lambda **kw: nhsde.statistics.multilevel_monte_carlo(
+        BALL.build(), BALL.initial_state(), KEY, t1=1.0, statistic=("mean", "x"), n_paths=(64,), **kw
+    ),
+    "extrapolate": lambda **kw: nhsde.statistics.extrapolate(
+        BALL.build(), BALL.initial_state(), KEY, t1=1.0, n_paths=64, **kw
+    ),
+    "control_variate": lambda **kw: nhsde.statistics.control_variate(
+        BALL.build(), BALL.initial_state(), KEY, t1=1.0, n_paths=64, **kw
+    ),
+    "quasi_monte_carlo": lambda **kw: nhsde.statistics.quasi_monte_carlo(
+        BALL.build(), BALL.initial_state(), KEY, t1=1.0, n_paths=64, **kw
+    ),
+    "multilevel_quasi_monte_carlo": lambda **kw: nhsde.statistics.multilevel_quasi_monte_carlo(
+        BALL.build(), BALL.initial_state(), KEY, t1=1.0, statistic=("mean", "x"), n_points=(64,), **kw
+    ),
+    "to_accuracy": lambda **kw: nhsde.statistics.to_accuracy(
+        BALL.build(), BALL.initial_state(), KEY, t1=1.0, statistic=("mean", "x"), rmse=0.1, **kw
+    ),
+}
+
+
+@pytest.mark.parametrize("name", list(ESTIMATOR_CALLS))
+@pytest.mark.parametrize(
+    "kw, exc, match",
+    [
+        (dict(dt=0.25, steps=nhsde.FixedSteps(0.25)), TypeError, r"dt=0.25 and steps=.*: give the step once"),
+        (dict(steps=nhsde.AdaptiveSteps(0.25)), ValueError, r"compares solves on fixed step grids; use dt=h"),
+        (dict(steps=0.25), TypeError, r"steps=0.25; expected nhsde.FixedSteps\(h\)"),
+        (dict(dt=nhsde.FixedSteps(0.25)), TypeError, r"dt=FixedSteps\(dt=0.25\); give a number"),
+        (dict(dt=-1.0), ValueError, r"dt=-1.0; must be > 0"),
+    ],
+)
+def test_every_estimator_takes_its_step_by_one_rule(name, kw, exc, match):
+    """``dt=h`` or ``steps=FixedSteps(h)``, once, the same messages everywhere (``estimator_step``), refused
+    before any solve."""
+    with pytest.raises(exc, match=match):
+        ESTIMATOR_CALLS[name](**kw)
+
+
+@pytest.mark.parametrize("name", [n for n in ESTIMATOR_CALLS if n != "to_accuracy"])
+def test_every_estimator_but_to_accuracy_needs_a_step(name):
+    with pytest.raises(TypeError, match=rf"{name} needs a step: dt=h or steps=nhsde.FixedSteps\(h\)"):
+        ESTIMATOR_CALLS[name]()
+
+
+def test_a_step_given_as_fixed_steps_is_the_same_step():
+    """``steps=FixedSteps(h)`` gives bitwise the estimate of ``dt=h`` (extrapolation, whose two solves share it)."""
+    by_dt = ESTIMATOR_CALLS["extrapolate"](dt=0.25)
+    by_steps = ESTIMATOR_CALLS["extrapolate"](steps=nhsde.FixedSteps(0.25))
+    np.testing.assert_array_equal(np.asarray(by_dt.cov), np.asarray(by_steps.cov))

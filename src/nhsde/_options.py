@@ -87,6 +87,32 @@ class AdaptiveSteps(AbstractSteps):
             raise ValueError(f"max_steps={self.max_steps}; must be ≥ 1.")
 
 
+def estimator_step(dt, steps, who: str, *, required: bool = True, brownian_dt: bool = False) -> FixedSteps | None:
+    """The fixed step an estimator ``who`` is given, ``dt=h`` or ``steps=FixedSteps(h)``: the one rule of every
+    estimator (``simulate`` also takes adaptive steps).  ``None`` where neither is given and not ``required``;
+    refused where both are given, where ``steps`` is not :class:`FixedSteps` (estimators compare and couple solves
+    on fixed grids), or where it sets ``brownian_dt`` and ``who`` sets its own (``brownian_dt=False``)."""
+    if steps is None:
+        if dt is None:
+            if required:
+                raise TypeError(f"{who} needs a step: dt=h or steps=nhsde.FixedSteps(h).")
+            return None
+        if isinstance(dt, AbstractSteps):
+            raise TypeError(f"dt={dt!r}; give a number, dt=h, or the steps as steps=nhsde.FixedSteps(h).")
+        return FixedSteps(check_number("dt", dt, positive=True))
+    if dt is not None:
+        raise TypeError(f"dt={dt} and steps={steps!r}: give the step once.")
+    if not isinstance(steps, AbstractSteps):
+        raise TypeError(f"steps={steps!r}; expected nhsde.FixedSteps(h), or the step as a number, dt=h.")
+    if not isinstance(steps, FixedSteps):
+        raise ValueError(
+            f"steps={steps!r}: {who} compares solves on fixed step grids; use dt=h or steps=nhsde.FixedSteps(h)."
+        )
+    if steps.brownian_dt is not None and not brownian_dt:
+        raise ValueError(f"steps={steps!r}: {who} sets the Brownian path's step itself; leave brownian_dt None.")
+    return steps
+
+
 def _devices(devices):
     return tuple(devices) if isinstance(devices, (list, tuple)) else devices
 

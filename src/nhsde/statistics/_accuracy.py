@@ -52,7 +52,7 @@ import diffrax as dfx
 from .._brownian import BLOCK
 from .._ensemble import Save, SimulationError
 from .._misc import check_key, check_number, check_span, check_steps, is_concrete, split_key
-from .._options import AbstractSteps, Batching, FixedSteps
+from .._options import AbstractSteps, Batching, estimator_step
 from .._simulate import stable_step
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
@@ -263,15 +263,8 @@ def to_accuracy(
         rmse = check_number("rmse", rmse, positive=True)
     else:
         relative_rmse = check_number("relative_rmse", relative_rmse, positive=True)
-    if steps is not None:
-        if dt is not None:
-            raise TypeError(f"dt={dt} and steps={steps!r}: give the coarsest step once.")
-        if not isinstance(steps, FixedSteps) or steps.brownian_dt is not None:
-            raise ValueError(
-                f"steps={steps!r}: the estimators compare solves on fixed step grids h₀ 2^−ℓ; use dt=h₀ or "
-                "steps=FixedSteps(h₀) (without brownian_dt)."
-            )
-        dt = steps.dt
+    grid = estimator_step(dt, steps, "to_accuracy", required=False)
+    dt = None if grid is None else grid.dt
     t0, t1 = check_span(t0, t1)
     if antithetic is not None and not isinstance(antithetic, bool):
         raise TypeError(f"antithetic={antithetic!r}; expected None, True or False.")

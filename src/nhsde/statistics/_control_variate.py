@@ -74,7 +74,7 @@ from jaxtyping import Array, Float, Int
 
 from .._ensemble import Save
 from .._misc import cast_floats, check_key, check_number, check_span, check_steps
-from .._options import AbstractSteps, Batching, FixedSteps
+from .._options import AbstractSteps, Batching, estimator_step
 from .._params import validated
 from .._simulate import MIN_PATHS
 from .._solvers import solver_needs
@@ -389,20 +389,11 @@ def control_variate(
     n_paths = check_number("n_paths", n_paths, integer=True)
     if n_paths < MIN_PATHS:
         raise ValueError(f"n_paths={n_paths}; must be ≥ {MIN_PATHS} (a covariance and its standard error need 4).")
-    if steps is not None:
-        if dt is not None:
-            raise TypeError(f"dt={dt} and steps={steps!r}: give the step once.")
-        if not isinstance(steps, FixedSteps):
-            raise ValueError(
-                f"steps={steps!r}: the control runs on the system's step grid; use dt=… or steps=FixedSteps(dt)."
-            )
-        dt = float(steps.dt)
-    if dt is None:
-        raise TypeError("control_variate needs a step: dt=… or steps=FixedSteps(dt).")
-    h = check_number("dt", dt, positive=True)
+    steps = estimator_step(dt, steps, "control_variate", brownian_dt=True)
+    assert steps is not None
+    h = steps.dt
     t0, t1 = check_span(t0, t1)
     n_steps = check_steps("dt", t1 - t0, h)
-    steps = FixedSteps(h) if steps is None else steps
     y0 = system.state(y0, "y0")
     solver_needs(solver, system)  # names the solver if it cannot solve the system
     save = paths_save(save, n_steps, system.layout.names)

@@ -26,7 +26,7 @@ from jaxtyping import Array, Float, Int
 
 from .._ensemble import Save
 from .._misc import check_number, check_span, check_steps
-from .._options import Batching
+from .._options import Batching, FixedSteps, estimator_step
 from .._solvers import solver_needs
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
@@ -75,7 +75,8 @@ def extrapolate(
     *,
     n_paths: int,
     t1: float,
-    dt: float,
+    dt: float | None = None,
+    steps: FixedSteps | None = None,
     t0: float = 0.0,
     solver: str | dfx.AbstractSolver = "euler",
     order: int | None = None,
@@ -86,7 +87,7 @@ def extrapolate(
 ) -> Extrapolation:
     """Richardson–Romberg extrapolation ``(2^p S(h/2) − S(h))/(2^p − 1)`` of every saved mean and covariance.
 
-    Arguments as :func:`~nhsde.simulate`, with ``dt = h`` the coarse step (``h/2``
+    Arguments as :func:`~nhsde.simulate`, with ``dt = h`` (or ``steps=FixedSteps(h)``) the coarse step (``h/2``
     must divide ``t1 − t0``).  ``order``: the weak order ``p`` of ``solver``
     (default 2 for :class:`~nhsde.PlatenWeak2`, else 1; pass 2 for Heun or SRA1
     on additive noise, where they are weak order 2).  ``save`` defaults to the
@@ -103,7 +104,9 @@ def extrapolate(
     if order is None:
         order = 2 if isinstance(solver, PlatenWeak2) else 1
     p = check_number("order", order, positive=True)
-    h = check_number("dt", dt, positive=True)
+    grid = estimator_step(dt, steps, "extrapolate")
+    assert grid is not None
+    h = grid.dt
     t0, t1 = check_span(t0, t1)
     n_steps = check_steps("dt", t1 - t0, h)
     save = paths_save(save, n_steps, system.layout.names)

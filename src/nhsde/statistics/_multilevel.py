@@ -47,7 +47,7 @@ from jaxtyping import Array, Float, Int
 from .._brownian import BLOCK
 from .._ensemble import Save
 from .._misc import check_key, check_number, check_span, check_steps, fold_key, is_concrete
-from .._options import AbstractSteps, Batching, FixedSteps
+from .._options import AbstractSteps, Batching, estimator_step
 from .._solvers import solver_needs
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
@@ -276,20 +276,9 @@ def multilevel_monte_carlo(
         raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
     if (rmse is None) == (n_paths is None):
         raise TypeError("multilevel_monte_carlo needs exactly one of rmse=… (adaptive) or n_paths=(N_0, …, N_L).")
-    if steps is not None:
-        if dt is not None:
-            raise TypeError(f"dt={dt} and steps={steps!r}: give the coarsest step once.")
-        if not isinstance(steps, FixedSteps):
-            raise ValueError(
-                f"steps={steps!r}: multilevel Monte Carlo couples levels on fixed step grids h₀ 2^−ℓ; "
-                "use dt=h₀ or steps=FixedSteps(h₀)."
-            )
-        if steps.brownian_dt is not None:
-            raise ValueError(f"steps={steps!r}: each level sets its own brownian_dt; leave it None.")
-        dt = steps.dt
-    if dt is None:
-        raise TypeError("multilevel_monte_carlo needs the coarsest step: dt=h₀ or steps=FixedSteps(h₀).")
-    h0 = check_number("dt", dt, positive=True)
+    grid = estimator_step(dt, steps, "multilevel_monte_carlo")
+    assert grid is not None
+    h0 = grid.dt
     t0, t1 = check_span(t0, t1)
     steps0 = check_steps("dt", t1 - t0, h0)
     solver_needs(coupling_solver(solver), system)

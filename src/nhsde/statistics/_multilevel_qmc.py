@@ -37,7 +37,7 @@ from jaxtyping import Array, Int, UInt
 from .._brownian import BLOCK
 from .._ensemble import Save
 from .._misc import check_key, check_number, check_span, check_steps, fold_key, is_concrete
-from .._options import AbstractSteps, Batching
+from .._options import Batching, FixedSteps, estimator_step
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
 from ._control_variate import LinearisedControl, PerEntry
@@ -305,8 +305,9 @@ def multilevel_quasi_monte_carlo(
     key,
     *,
     t1: float,
-    dt: float,
     statistic,
+    dt: float | None = None,
+    steps: FixedSteps | None = None,
     rmse: float | None = None,
     n_points: Sequence[int] | None = None,
     t0: float = 0.0,
@@ -324,7 +325,8 @@ def multilevel_quasi_monte_carlo(
 
     Arguments as :func:`~nhsde.statistics.multilevel_monte_carlo` (``statistic`` included), and:
 
-    - ``dt``: the coarsest step ``h₀``, a number with ``(t1 − t0)/h₀`` a power of two (the bridge's grid).
+    - ``dt`` (or ``steps=FixedSteps(h₀)``): the coarsest step ``h₀``, with ``(t1 − t0)/h₀`` a power of two (the
+      bridge's grid).
     - ``rmse``: the requested root-mean-square error of ``statistic`` (levels and points chosen adaptively), or
       ``n_points``: a fixed ``(N_0, …, N_L)`` points per scrambling, powers of two ≥ 64.
     - ``replicates``: ``R``, the independent scramblings per level (≥ 2; the variances come from their spread).
@@ -352,12 +354,9 @@ def multilevel_quasi_monte_carlo(
         raise TypeError(
             "multilevel_quasi_monte_carlo needs exactly one of rmse=… (adaptive) or n_points=(N_0, …, N_L)."
         )
-    if isinstance(dt, AbstractSteps):
-        raise TypeError(
-            f"dt={dt!r}; multilevel quasi-Monte Carlo needs the coarsest step as a number (the levels are fixed "
-            "grids h₀ 2^−ℓ under one Brownian bridge)."
-        )
-    h0 = check_number("dt", dt, positive=True)
+    grid = estimator_step(dt, steps, "multilevel_quasi_monte_carlo")
+    assert grid is not None
+    h0 = grid.dt
     t0, t1 = check_span(t0, t1)
     steps0 = check_steps("dt", t1 - t0, h0)
     if steps0 & (steps0 - 1):

@@ -43,7 +43,7 @@ from jaxtyping import Array, Float, Int, PRNGKeyArray, UInt
 from .._brownian import BLOCK, AbstractDriver
 from .._ensemble import Save
 from .._misc import check_key, check_number, check_span, check_steps, fold_key
-from .._options import AbstractSteps, Batching
+from .._options import Batching, FixedSteps, estimator_step
 from .._simulate import MAX_PATH_INDEX, simulate
 from .._solvers import SOLVERS, solver_needs
 from .._system import StochasticSystem
@@ -275,7 +275,8 @@ def quasi_monte_carlo(
     *,
     n_paths: int,
     t1: float,
-    dt: float,
+    dt: float | None = None,
+    steps: FixedSteps | None = None,
     replicates: int = 16,
     t0: float = 0.0,
     solver: str | dfx.AbstractSolver = "euler",
@@ -303,15 +304,15 @@ def quasi_monte_carlo(
     path; the host prototype (``benchmarks/qmc.py``, 16384 paths) variance ÷120–3400 on the ball, the sleigh
     and the body on the vibrating plane, ÷4–7 on Chaplygin's ball.
 
-    Arguments as :func:`~nhsde.simulate`; ``n_paths`` per replicate, a power of two ≥ 64 (the Sobol' points
-    ``0 … n_paths − 1`` form a net); ``(t1 − t0)/dt`` a power of two with ``(t1 − t0)/dt × channels ≤
-    21201``; ``solver`` one of :func:`allowed_solvers`: one that needs Brownian increments only (not Lévy
-    area), or ``nhsde.PlatenWeak2(increments='gaussian')`` (weak order 2), whose ``ΔW`` come from the points and
-    two-point ``V`` pseudo-random from ``fold_in(key, replicates)``; ``antithetic``: every point also solved with
-    its increments reflected (``W → −W``, the point set ``1 − u``), its value the pair's average and its second
-    moment the average of the two paths' (twice the path-steps; it gains where the statistic has a part odd in
-    ``W``, :mod:`._variance_reduction`); ``wrt``: names of scalar parameters: ``derivatives`` of the moments in
-    them (forward mode), with errors from the replicate spread.
+    Arguments as :func:`~nhsde.simulate` (the step ``dt=h`` or ``steps=FixedSteps(h)``); ``n_paths`` per replicate,
+    a power of two ≥ 64 (the Sobol' points ``0 … n_paths − 1`` form a net); ``(t1 − t0)/dt`` a power of two with
+    ``(t1 − t0)/dt × channels ≤ 21201``; ``solver`` one of :func:`allowed_solvers`: one that needs Brownian
+    increments only (not Lévy area), or ``nhsde.PlatenWeak2(increments='gaussian')`` (weak order 2), whose ``ΔW``
+    come from the points and two-point ``V`` pseudo-random from ``fold_in(key, replicates)``; ``antithetic``: every
+    point also solved with its increments reflected (``W → −W``, the point set ``1 − u``), its value the pair's
+    average and its second moment the average of the two paths' (twice the path-steps; it gains where the statistic
+    has a part odd in ``W``, :mod:`._variance_reduction`); ``wrt``: names of scalar parameters: ``derivatives`` of
+    the moments in them (forward mode), with errors from the replicate spread.
     """
     watch = Stopwatch()
     if not isinstance(system, StochasticSystem):
@@ -338,12 +339,9 @@ def quasi_monte_carlo(
             f"replicates={replicates}, n_paths={n_paths}: {replicates * n_paths} paths in one run, beyond the "
             f"{MAX_PATH_INDEX + 1} it indexes; take fewer."
         )
-    if isinstance(dt, AbstractSteps):
-        raise TypeError(
-            f"dt={dt!r}; quasi-Monte Carlo needs a fixed step given as a number (adaptive steps refine each path "
-            "where it asks, which a point set fixed in advance cannot follow)."
-        )
-    dt = check_number("dt", dt, positive=True)
+    grid = estimator_step(dt, steps, "quasi_monte_carlo")  # (a point set fixed in advance: no adaptive steps)
+    assert grid is not None
+    dt = grid.dt
     t0, t1 = check_span(t0, t1)
     n_base = check_steps("dt", t1 - t0, dt)
     if n_base & (n_base - 1):
