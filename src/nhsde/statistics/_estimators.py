@@ -55,11 +55,15 @@ __all__ = [
 class ControlPilot:
     """What the controlled pilot of one solver measured (:meth:`Pricing.control_pilot`): the multilevel estimator
     with the control (``Y − βC``) at ``pilot_paths`` samples on each pilot level, its level variances ``V_ℓ`` and
-    the bias model ``E[Y(h) − β(C(h) − E C)] − S ≈ C h^p`` of its level terms, bounded as the solver's pilot does."""
+    the bias model ``E[Y(h) − β(C(h) − E C)] − S ≈ C h^p`` of its level terms, bounded as the solver's pilot does,
+    and ``kappa``: the seconds of its path-steps over those of the solver's plain pilot (one more run of each
+    compiled program; a controlled path-step also takes the drift's Jacobian-vector product, on Chaplygin's ball and
+    the body 1.6–2× a plain one)."""
 
     level_variances: tuple[float, ...]
     bias_bound: float
     bias_constant: float
+    kappa: float
 
 
 @dataclasses.dataclass
@@ -108,20 +112,29 @@ class Pricing:
         label = (cand.label, antithetic)
         if label in self.control_pilots:
             return self.control_pilots[label], 0.0
-        res = multilevel_monte_carlo(
-            self.system,
-            self.y0,
-            fold_key(self._pilot_key(cand), 96),
-            n_paths=(self.pilot_paths,) * self.pilot_levels,
-            dt=self.h0,
-            solver=cand.solver,
-            weak_order=cand.order,
-            antithetic=antithetic,
-            control="mean",
-            piece_paths=self.pilot_paths,
-            statistic=self.statistic,
-            **self.run_options(tangents=False),
-        )
+
+        def run(fold: int) -> MultilevelEstimate:
+            return multilevel_monte_carlo(
+                self.system,
+                self.y0,
+                fold_key(self._pilot_key(cand), fold),
+                n_paths=(self.pilot_paths,) * self.pilot_levels,
+                dt=self.h0,
+                solver=cand.solver,
+                weak_order=cand.order,
+                antithetic=antithetic,
+                control="mean",
+                piece_paths=self.pilot_paths,
+                statistic=self.statistic,
+                **self.run_options(tangents=False),
+            )
+
+        res = run(96)
+        start = time.perf_counter()
+        timed = run(95)  # compiled now: its seconds per path-step against the plain pilot's
+        rate = (time.perf_counter() - start) / timed.cost.path_steps
+        self.pilot(cand)
+        self.time_pilot(cand)
         variances = tuple(float(v) for v in res.level_variances)
         terms = [float(m) for m in res.level_means[1:]]
         h_fine = self.h0 / 2 ** (self.pilot_levels - 1)
@@ -130,9 +143,10 @@ class Pricing:
             variances,
             level_bias_bound(terms, [v / self.pilot_paths for v in variances[1:]], self.h0, p),
             -terms[-1] / (h_fine**p * (2**p - 1)),  # Ŷ_L ≈ −C h_L^p (2^p − 1)
+            rate / self.pilots[cand.label].seconds_per_path_step,
         )
         self.control_pilots[label] = pilot
-        return pilot, res.cost.path_steps
+        return pilot, res.cost.path_steps + timed.cost.path_steps
 
     def time_pilot(self, cand: Candidate) -> None:
         """Give ``cand``'s pilot its measured seconds per path-step (one more run of its compiled programs, its work
@@ -326,17 +340,18 @@ class Multilevel(AbstractEstimator):
     def own_pilot(self) -> bool:
         return self.control
 
-    def _levels(self, pricing: Pricing) -> tuple[tuple[float, ...], float, float]:
-        """``(V_ℓ, |C| bound, pilot work done now)``: the solver's pilot, or with the control the controlled one."""
+    def _levels(self, pricing: Pricing) -> tuple[tuple[float, ...], float, float, float]:
+        """``(V_ℓ, |C| bound, κ, pilot work done now)``: the solver's pilot (``κ = 1``), or with the control the
+        controlled one."""
         if not self.control:
             p = pricing.pilot(self.candidate)
-            return _variances(p, self.antithetic)[2], p.bias_bound, 0.0
+            return _variances(p, self.antithetic)[2], p.bias_bound, 1.0, 0.0
         pilot, work = pricing.control_pilot(self.candidate, self.antithetic)
-        return pilot.level_variances, pilot.bias_bound, work
+        return pilot.level_variances, pilot.bias_bound, pilot.kappa, work
 
     def predict(self, pricing: Pricing) -> AccuracyAlternative:
         try:
-            variances, bound, work = self._levels(pricing)
+            variances, bound, kappa, work = self._levels(pricing)
         except SimulationError as e:  # the control's pilot paths blow up at this step
             return self.row(f"does not apply: {str(e).splitlines()[0][:160]}")
         c, counts, piece, n_levels = multilevel_plan(
@@ -352,7 +367,15 @@ class Multilevel(AbstractEstimator):
         )
         note = f"{n_levels} levels" if n_levels else "too many levels"
         return AccuracyAlternative(
-            self.name, c, dt=pricing.h0, n_paths=counts, note=note, piece_paths=piece, pilot_work=work, estimator=self
+            self.name,
+            c * kappa,
+            dt=pricing.h0,
+            n_paths=counts,
+            note=note + (f", κ = {kappa:.3g}" if self.control else ""),
+            piece_paths=piece,
+            pilot_work=work,
+            kappa=kappa,
+            estimator=self,
         )
 
     def run(self, pricing: Pricing, plan: AccuracyAlternative) -> tuple[AbstractEstimate, float]:
