@@ -200,6 +200,11 @@ class AbstractEstimator(abc.ABC):
         return f"{self.method}, {self.candidate.label}{extras}"
 
     @property
+    def copies(self) -> int:
+        """Solves per sample (per point): the reflected paths and the control each double them."""
+        return (2 if self.antithetic else 1) * (2 if self.control else 1)
+
+    @property
     def own_pilot(self) -> bool:
         """Whether pricing runs a pilot of its own (beyond its solver's)."""
         return False
@@ -226,7 +231,7 @@ class AbstractEstimator(abc.ABC):
 
     def kept_samples(self, plan: AccuracyAlternative) -> float:
         """Per-path value sets its run keeps at their peak: one per solve of each sample."""
-        return (2 if self.antithetic else 1) * sum(plan.n_paths)
+        return self.copies * sum(plan.n_paths)
 
     def row(self, note: str, pilot_work: float = 0.0) -> AccuracyAlternative:
         """A report row for a plan it cannot make, with the reason."""
@@ -396,8 +401,7 @@ class Multilevel(AbstractEstimator):
         return res, float(res.bias)
 
     def kept_samples(self, plan: AccuracyAlternative) -> float:
-        copies = (2 if self.antithetic else 1) * (2 if self.control else 1)
-        return copies * sum(n * (2 if ell else 1) for ell, n in enumerate(plan.n_paths))
+        return self.copies * sum(n * (2 if ell else 1) for ell, n in enumerate(plan.n_paths))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -529,11 +533,6 @@ class _AbstractQuasiMonteCarlo(AbstractEstimator):
         return None
 
     pilot_fold: ClassVar[int]  # the pilot key's fold index, its own
-
-    @property
-    def copies(self) -> int:
-        """Solves per point: the reflected paths and the control each double them."""
-        return (2 if self.antithetic else 1) * (2 if self.control else 1)
 
     def _bias_model(self, pricing: Pricing) -> tuple[_BiasModel, float]:
         """Its bias model and the pilot work done for it now: the solver's pilot's (every path has the law of a
