@@ -13,8 +13,9 @@ value, SE, bias estimate, realised error, path-steps (pilots included), seconds 
 Estimators (``--estimators``): ``plain-euler``, ``plain-weak2``, ``richardson-euler``, ``richardson-weak2``,
 ``multilevel-euler``, ``multilevel-weak2``, ``multilevel-weak2-anti``, ``control-variate``, ``qmc``, ``qmc-weak2``,
 ``qmc-anti`` (antithetic points), ``plain-heun2``, ``richardson-heun2``, ``multilevel-heun2``, ``qmc-heun2`` (Heun's
-method, the body's first pilot), ``mlqmc``, ``mlqmc-weak2`` (``MultilevelQuasiMonteCarlo``) (``weak2`` is
-``PlatenWeak2(increments='gaussian')``).
+method, the body's first pilot), ``mlqmc``, ``mlqmc-weak2`` (``MultilevelQuasiMonteCarlo``),
+``multilevel-weak2-control``, ``qmc-weak2-control``, ``mlqmc-weak2-control`` (the linearised control variate inside)
+(``weak2`` is ``PlatenWeak2(increments='gaussian')``).
 
 Per cell, over the runs that returned (float64):
 
@@ -95,6 +96,9 @@ def estimator_objects():
         "qmc-heun2": QuasiMonteCarlo("heun2"),
         "mlqmc": MultilevelQuasiMonteCarlo(),
         "mlqmc-weak2": MultilevelQuasiMonteCarlo(GAUSS),
+        "multilevel-weak2-control": Multilevel(GAUSS, control=True),
+        "qmc-weak2-control": QuasiMonteCarlo(GAUSS, control=True),
+        "mlqmc-weak2-control": MultilevelQuasiMonteCarlo(GAUSS, control=True),
     }
 
 
