@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import nhsde
-from nhsde.scenes import BallOnVibratingPlane, ChaplyginSleigh, ball_covariances
+from nhsde.scenes import BallOnVibratingPlane, ChaplyginBall, ChaplyginSleigh, ball_covariances
 from nhsde.statistics import (
     Mean,
     Multilevel,
@@ -222,3 +222,25 @@ def test_to_accuracy_prices_each_estimator_with_the_control(kind):
     assert chosen.name.endswith("weak2-gaussian, control variate") and chosen.applies, res.report()
     assert chosen.pilot_work > 0 and res.pilot_cost.path_steps >= chosen.pilot_work
     assert abs(float(res.value()[0]) - float(sleigh_energy(EPS, 1.0))) <= 4 * rmse
+
+
+def test_a_run_far_beyond_its_plan_is_never_returned():
+    """Chaplygin's ball at h₀ = 1/4 (key 1017, relative RMSE 1e-2): the controlled multilevel run's standard error
+    came out 4.6e17× the target, every value finite (its paths went far beyond the pilot's).  ``to_accuracy``
+    refuses such a run (standard error above 2× the target): from its own coarsest step it prices everything
+    again from half the step and meets the target there; from a given step it raises, naming the ratio."""
+    scene = ChaplyginBall(eps=1.0, nu=2.0)
+    system, y0 = scene.build(), scene.initial_state().astype(jnp.float64)
+    args = dict(
+        t1=4.0,
+        statistic=Mean("energy"),
+        rmse=0.0075,
+        save=nhsde.Save(names=("energy",), n=2),
+        estimators=(Multilevel(GAUSS, control=True),),
+    )
+    res = to_accuracy(system, y0, jax.random.key(1017), **args)
+    assert "standard error of" in res.reason and "priced again from dt=0.125" in res.reason, res.reason
+    value, se = (float(x) for x in res.value())
+    assert se <= 0.0075 and abs(value - 0.75) <= 4 * se  # E[H] = 3ν/(8ε), stationary (S0 Statement 1)
+    with pytest.raises(ValueError, match=r"dt=0.25: .* standard error of .*× the target .* pass a smaller dt"):
+        to_accuracy(system, y0, jax.random.key(1017), dt=0.25, **args)

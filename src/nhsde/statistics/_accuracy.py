@@ -82,6 +82,12 @@ the first pilot's path-steps: below, compiling and running another pilot costs m
 MAX_PILOT_HALVINGS = 10
 """The default coarsest step is halved while the pilot's paths fail, down to ``(t1 − t0)/2^10``."""
 
+MAX_SE_OVER_TARGET = 2.0
+"""A run whose standard error exceeds the target this many times (its variance 4× the plan's) is refused, not
+returned: its paths went far beyond the pilot's (on Chaplygin's ball at h = 1/4 the linearised control reached 1e17
+× the target in 3 of 20 keys, finite all the way); the pilot's variances from 1024 samples are within a few per cent
+where the tails are light."""
+
 _OWN_STEP = contextvars.ContextVar("nhsde_to_accuracy_own_step", default=False)
 """Set for a retry from half the default coarsest step: that step is still ``to_accuracy``'s own to halve."""
 
@@ -443,6 +449,15 @@ def to_accuracy(
                 raise
             # this attempt's work: the pilots and the run's solves up to the one that failed
             return from_half_step(f"{chosen.name} failed ({str(e).splitlines()[0][:120]})", pilot_work + solved())
+    se = float(estimate.value(statistic)[1])
+    if not se <= MAX_SE_OVER_TARGET * rmse:  # a statistic the plan did not foresee: never returned as meeting it
+        failure = (
+            f"{chosen.name}'s run reached a standard error of {se:.3g}, {se / rmse:.3g}× the target (paths far "
+            "beyond the pilot's)"
+        )
+        if retry:
+            return from_half_step(failure, pilot_work + estimate.cost.path_steps)
+        raise ValueError(f"rmse={rmse:.3g}, dt={h0}: {failure}; pass a smaller dt.")
     run_cost = run_watch.cost(estimate.cost.path_steps)
     return AccuracyResult(
         statistic=statistic,
