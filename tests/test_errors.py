@@ -72,8 +72,8 @@ def test_unknown_parameter_is_refused():
         (dict(dt=-0.1), ValueError, r"dt=-0.1; must be > 0"),
         (dict(dt=math.nan), ValueError, r"dt=nan; must be finite"),
         (dict(dt=0.3), ValueError, r"dt=0.3 must divide t1 − t0"),
-        (dict(t1=0.0), ValueError, r"t1=0.0 must be > t0=0.0"),
-        (dict(t1=1.0, t0=2.0), ValueError, r"t1=1.0 must be > t0=2.0"),
+        (dict(t1=0.0), ValueError, r"t1=0.0; must be > t0=0.0"),
+        (dict(t1=1.0, t0=2.0), ValueError, r"t1=1.0; must be > t0=2.0"),
         (dict(y0=jnp.zeros(3)), ValueError, r"y0 has shape \(3,\); expected \(4,\) or \(64, 4\)"),
         (dict(y0=jnp.array([0.0, jnp.nan, 0, 0])), ValueError, r"y0 contains non-finite"),
         (dict(solver="rk4"), ValueError, r"solver='rk4'; allowed: euler, milstein, heun, heun2, sra1, exponential"),
@@ -336,10 +336,33 @@ ESTIMATOR_CALLS = {
     ],
 )
 def test_every_estimator_takes_its_step_by_one_rule(name, kw, exc, match):
-    """``dt=h`` or ``steps=FixedSteps(h)``, once, the same messages everywhere (``estimator_step``), refused
+    """``dt=h`` or ``steps=FixedSteps(h)``, once, the same messages everywhere (``run_options``), refused
     before any solve."""
     with pytest.raises(exc, match=match):
         ESTIMATOR_CALLS[name](**kw)
+
+
+@pytest.mark.parametrize("name", ["simulate", *ESTIMATOR_CALLS])
+@pytest.mark.parametrize(
+    "kw, exc, match",
+    [
+        (dict(t0=1.0, dt=0.25), ValueError, r"t1=1.0; must be > t0=1.0"),
+        (dict(t0="start", dt=0.25), TypeError, r"t0='start'; expected a number"),
+        (dict(dt=0.3), ValueError, r"dt=0.3 must divide t1 − t0 = 1.0 into a whole number of steps"),
+        (dict(dt=2.0), ValueError, r"dt=2.0 is larger than t1 − t0 = 1.0"),
+        (dict(steps=nhsde.FixedSteps(0.25, max_steps=2)), ValueError, r"makes 4 steps .* max_steps=2"),
+        (dict(dt=0.25, save="x"), TypeError, r"save='x'; expected nhsde.Save\(...\)"),
+        (dict(dt=0.25, batching=3), TypeError, r"batching=3; expected nhsde.Batching\(...\)"),
+    ],
+)
+def test_simulate_and_every_estimator_check_the_run_options_by_one_rule(name, kw, exc, match):
+    """The span, the step and its budget, what is saved and the batching are checked in one place
+    (``RunOptions``), with the same messages in ``simulate`` and every estimator, before any solve."""
+    call = ESTIMATOR_CALLS.get(name) or (
+        lambda **kw: nhsde.simulate(BALL.build(), BALL.initial_state(), KEY, n_paths=64, t1=1.0, **kw)
+    )
+    with pytest.raises(exc, match=match):
+        call(**kw)
 
 
 @pytest.mark.parametrize("name", [n for n in ESTIMATOR_CALLS if n != "to_accuracy"])

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import nhsde
+from nhsde._options import RunOptions
 from nhsde.scenes import BallOnVibratingPlane, ChaplyginBall
 from nhsde.statistics import _paths
 from nhsde.statistics._cost import best_single, multilevel_plan
@@ -40,11 +41,12 @@ def test_runs_beyond_the_paths_of_one_key_draw_from_further_keys(monkeypatch):
     across the boundary is the concatenation of the two keys' runs, and their paths differ."""
     monkeypatch.setattr(_paths, "KEY_PATHS", 128)
     system, key = BALL.build(), jax.random.key(7)
-    args = dict(t0=0.0, t1=1.0, dts=(0.25,), brownian_dt=0.25, solver="euler", antithetic=False, batching=None)
-    args["save"] = nhsde.Save(names=("x",), n=2, paths=True)
-    (both,), _ = _paths.coupled_paths(system, Y0, key, n_paths=128, first_path=64, **args)
-    (first,), _ = _paths.coupled_paths(system, Y0, key, n_paths=64, first_path=64, **args)
-    (second,), _ = _paths.coupled_paths(system, Y0, jax.random.fold_in(key, 1), n_paths=64, **args)
+    save = nhsde.Save(names=("x",), n=2, paths=True)
+    run = RunOptions(t0=0.0, t1=1.0, steps=nhsde.FixedSteps(0.25), solver="euler", save=save)
+    args = dict(dts=(0.25,), brownian_dt=0.25, antithetic=False)
+    (both,), _ = _paths.coupled_paths(system, Y0, key, run, n_paths=128, first_path=64, **args)
+    (first,), _ = _paths.coupled_paths(system, Y0, key, run, n_paths=64, first_path=64, **args)
+    (second,), _ = _paths.coupled_paths(system, Y0, jax.random.fold_in(key, 1), run, n_paths=64, **args)
     np.testing.assert_array_equal(np.asarray(both), np.concatenate([first, second]))
     assert not np.any(np.asarray(first[:, -1]) == np.asarray(second[:, -1]))
 
@@ -60,7 +62,7 @@ def test_large_counts_run_in_large_runs_with_the_same_paths(monkeypatch):
     steps = nhsde.FixedSteps(0.125, brownian_dt=0.125)
     save = nhsde.Save(names=("x", "u_x"), n=2, paths=True)
     args = dict(t0=0.0, t1=1.0, steps=steps, solver="euler", save=save, batching=None)
-    got = _paths.solve_paths(BALL.build(), Y0, jax.random.key(5), first_path=64, n_paths=700, **args)
+    got = _paths.solve_paths(BALL.build(), Y0, jax.random.key(5), RunOptions(**args), first_path=64, n_paths=700)
     ens = nhsde.simulate(BALL.build(), Y0, jax.random.key(5), n_paths=700, first_path=64, **args)
     np.testing.assert_array_equal(np.asarray(got), np.asarray(ens.paths))
 
@@ -73,13 +75,13 @@ def test_runs_of_whole_pieces_keep_the_paths_and_their_initial_states():
     y0 = jnp.zeros((n, 4)).at[:, 0].set(jnp.linspace(0.0, 1.0, n))
     steps = nhsde.FixedSteps(0.125, brownian_dt=0.125)
     save = nhsde.Save(names=("x", "u_x"), n=2, paths=True)
-    args = dict(t0=0.0, t1=1.0, steps=steps, solver="euler", save=save, batching=None)
-    got = _paths.solve_paths(BALL.build(), y0, jax.random.key(5), first_path=0, n_paths=n, **args)
+    run = RunOptions(t0=0.0, t1=1.0, steps=steps, solver="euler", save=save)
+    got = _paths.solve_paths(BALL.build(), y0, jax.random.key(5), run, first_path=0, n_paths=n)
     ens = nhsde.simulate(BALL.build(), y0, jax.random.key(5), n_paths=n, t1=1.0, steps=steps, save=save)
     assert got.shape == (n, 2, 2)
     np.testing.assert_array_equal(np.asarray(got), np.asarray(ens.paths))
     with pytest.raises(ValueError, match=r"y0 has shape \(5, 4\); expected"):
-        _paths.solve_paths(BALL.build(), y0[:5], jax.random.key(5), first_path=0, n_paths=n, **args)
+        _paths.solve_paths(BALL.build(), y0[:5], jax.random.key(5), run, first_path=0, n_paths=n)
 
 
 def test_the_work_done_is_counted_solve_by_solve_failed_runs_included():

@@ -2,21 +2,25 @@
 
 - :class:`FixedSteps` / :class:`AdaptiveSteps`: how time is stepped;
 - :class:`Batching`: how paths are grouped into chunks, spread over devices and
-  differentiated (reverse-mode checkpointing).
+  differentiated (reverse-mode checkpointing);
+- :class:`RunOptions`: all of a run's options together, checked once (built by :func:`run_options`).
 """
 
 # No ``from __future__ import annotations``: equinox reads AbstractVar annotations, which must not be strings.
 
+import dataclasses
 from collections.abc import Sequence
 
+import diffrax as dfx
 import equinox as eqx
 import jax
 import numpy as np
 
 from ._brownian import BLOCK
-from ._misc import check_number
+from ._ensemble import Save
+from ._misc import check_number, check_span, check_steps
 
-__all__ = ["AbstractSteps", "AdaptiveSteps", "Batching", "FixedSteps"]
+__all__ = ["AbstractSteps", "AdaptiveSteps", "Batching", "FixedSteps", "RunOptions", "run_options"]
 
 
 class AbstractSteps(eqx.Module):
@@ -87,32 +91,6 @@ class AdaptiveSteps(AbstractSteps):
             raise ValueError(f"max_steps={self.max_steps}; must be ≥ 1.")
 
 
-def estimator_step(dt, steps, who: str, *, required: bool = True, brownian_dt: bool = False) -> FixedSteps | None:
-    """The fixed step an estimator ``who`` is given, ``dt=h`` or ``steps=FixedSteps(h)``: the one rule of every
-    estimator (``simulate`` also takes adaptive steps).  ``None`` where neither is given and not ``required``;
-    refused where both are given, where ``steps`` is not :class:`FixedSteps` (estimators compare and couple solves
-    on fixed grids), or where it sets ``brownian_dt`` and ``who`` sets its own (``brownian_dt=False``)."""
-    if steps is None:
-        if dt is None:
-            if required:
-                raise TypeError(f"{who} needs a step: dt=h or steps=nhsde.FixedSteps(h).")
-            return None
-        if isinstance(dt, AbstractSteps):
-            raise TypeError(f"dt={dt!r}; give a number, dt=h, or the steps as steps=nhsde.FixedSteps(h).")
-        return FixedSteps(check_number("dt", dt, positive=True))
-    if dt is not None:
-        raise TypeError(f"dt={dt} and steps={steps!r}: give the step once.")
-    if not isinstance(steps, AbstractSteps):
-        raise TypeError(f"steps={steps!r}; expected nhsde.FixedSteps(h), or the step as a number, dt=h.")
-    if not isinstance(steps, FixedSteps):
-        raise ValueError(
-            f"steps={steps!r}: {who} compares solves on fixed step grids; use dt=h or steps=nhsde.FixedSteps(h)."
-        )
-    if steps.brownian_dt is not None and not brownian_dt:
-        raise ValueError(f"steps={steps!r}: {who} sets the Brownian path's step itself; leave brownian_dt None.")
-    return steps
-
-
 def _devices(devices):
     return tuple(devices) if isinstance(devices, (list, tuple)) else devices
 
@@ -164,3 +142,111 @@ class Batching(eqx.Module):
                 raise ValueError(f"devices={self.devices!r} lists a device twice; each device takes one chunk.")
         if self.checkpoint is not None and not isinstance(self.checkpoint, (bool, np.bool_)):
             raise TypeError(f"checkpoint={self.checkpoint!r}; expected True, False or None.")
+
+
+def _span_end(name: str):
+    return lambda value: check_number(name, value)
+
+
+class RunOptions(eqx.Module):
+    """What every solve of one question shares, checked once: the span ``(t0, t1)``, the steps, the solver, what is
+    saved and how paths are batched.  :func:`~nhsde.simulate` and every estimator build it from their keywords
+    (:func:`run_options`: the one rule for ``dt`` and ``steps``) and pass it inward; the estimators' levels, pilots
+    and coupled solves are the same options at other steps (:meth:`at`) or solvers.
+
+    Examples:
+        >>> import nhsde
+        >>> from nhsde._options import RunOptions
+        >>> run = RunOptions(t0=0.0, t1=1.0, steps=nhsde.FixedSteps(0.25), solver="euler")
+        >>> run.n_steps, run.at(0.125).n_steps
+        (4, 8)
+        >>> RunOptions(t0=0.0, t1=1.0, steps=nhsde.FixedSteps(0.3), solver="euler")
+        Traceback (most recent call last):
+        ...
+        ValueError: dt=0.3 must divide t1 − t0 = 1.0 into a whole number of steps.
+    """
+
+    t0: float = eqx.field(converter=_span_end("t0"))
+    t1: float = eqx.field(converter=_span_end("t1"))
+    steps: AbstractSteps
+    solver: str | dfx.AbstractSolver
+    save: Save | None = None  # resolved by the caller: simulate's default keeps every component, an estimator's paths
+    batching: Batching = eqx.field(default=None, converter=lambda b: Batching() if b is None else b)
+
+    def __check_init__(self):
+        check_span(self.t0, self.t1)
+        if not isinstance(self.steps, AbstractSteps):
+            raise TypeError(f"steps={self.steps!r}; expected nhsde.FixedSteps(...) or nhsde.AdaptiveSteps(...).")
+        if self.save is not None and not isinstance(self.save, Save):
+            raise TypeError(f"save={self.save!r}; expected nhsde.Save(...).")
+        if not isinstance(self.batching, Batching):
+            raise TypeError(f"batching={self.batching!r}; expected nhsde.Batching(...).")
+        step, span = float(self.steps.dt), self.t1 - self.t0
+        if step > span:
+            raise ValueError(f"dt={step} is larger than t1 − t0 = {span}.")
+        n_steps = self.n_steps
+        if n_steps > self.steps.max_steps:
+            raise ValueError(
+                f"dt={step} makes {n_steps} steps of (t0, t1) = ({self.t0}, {self.t1}), beyond the budget "
+                f"max_steps={self.steps.max_steps}; raise it with steps=FixedSteps(dt, max_steps=…) to run this long."
+            )
+        self.substeps  # noqa: B018  (raises where brownian_dt does not divide the step)
+
+    @property
+    def n_steps(self) -> int:
+        """Steps of ``(t0, t1)``."""
+        return check_steps("dt", self.t1 - self.t0, float(self.steps.dt))
+
+    @property
+    def dt(self) -> float:
+        """The step taken, ``(t1 − t0)/n_steps``."""
+        return (self.t1 - self.t0) / self.n_steps
+
+    @property
+    def substeps(self) -> int:
+        """Base steps of the Brownian path per step (1 where ``brownian_dt`` is not set)."""
+        base = getattr(self.steps, "brownian_dt", None)
+        return 1 if base is None else check_steps("brownian_dt", self.dt, float(base))
+
+    def at(self, dt: float, brownian_dt: float | None = None) -> "RunOptions":
+        """The same options at fixed steps ``dt`` on a Brownian path of base step ``brownian_dt`` (a level, a pilot,
+        one of a coupled pair), the step budget kept."""
+        steps = FixedSteps(dt, brownian_dt=brownian_dt, max_steps=self.steps.max_steps)
+        return dataclasses.replace(self, steps=steps)
+
+
+def run_options(
+    who: str,
+    *,
+    t0,
+    t1,
+    dt,
+    steps,
+    solver,
+    save=None,
+    batching=None,
+    adaptive: bool = False,
+    brownian_dt: bool = False,
+) -> RunOptions:
+    """:class:`RunOptions` from the keywords of ``who`` (:func:`~nhsde.simulate` or an estimator), with the one rule
+    for the step: ``dt=h`` or ``steps=…``, not both.  Estimators (``adaptive=False``) take fixed steps only (they
+    compare and couple solves on fixed grids), and a ``brownian_dt`` only where ``who`` does not set its own."""
+    if steps is None:
+        if dt is None:
+            allowed = "steps=nhsde.FixedSteps(h) / nhsde.AdaptiveSteps(h)" if adaptive else "steps=nhsde.FixedSteps(h)"
+            raise TypeError(f"{who} needs a step: dt=h or {allowed}.")
+        if isinstance(dt, AbstractSteps):
+            raise TypeError(f"dt={dt!r}; give a number, dt=h, or the steps as steps=nhsde.FixedSteps(h).")
+        steps = FixedSteps(check_number("dt", dt, positive=True))
+    elif dt is not None:
+        raise TypeError(f"dt={dt} and steps={steps!r}: give the step once.")
+    elif not isinstance(steps, AbstractSteps):
+        raise TypeError(f"steps={steps!r}; expected nhsde.FixedSteps(h), or the step as a number, dt=h.")
+    if not adaptive:
+        if not isinstance(steps, FixedSteps):
+            raise ValueError(
+                f"steps={steps!r}: {who} compares solves on fixed step grids; use dt=h or steps=nhsde.FixedSteps(h)."
+            )
+        if steps.brownian_dt is not None and not brownian_dt:
+            raise ValueError(f"steps={steps!r}: {who} sets the Brownian path's step itself; leave brownian_dt None.")
+    return RunOptions(t0=t0, t1=t1, steps=steps, solver=solver, save=save, batching=batching)

@@ -49,8 +49,8 @@ from ._ensemble import (
     failure_result,
 )
 from ._interrupt import POLL_ABOVE, POLL_STEPS, poll, watching
-from ._misc import cast_floats, check_key, check_number, check_steps, is_concrete, under_trace
-from ._options import AbstractSteps, AdaptiveSteps, Batching, FixedSteps
+from ._misc import cast_floats, check_key, check_number, is_concrete, under_trace
+from ._options import AbstractSteps, AdaptiveSteps, Batching, FixedSteps, RunOptions, run_options
 from ._params import check_ranges, checked_on_host, differentiated_nonzero, parameters_checked_on_host, validated
 from ._solvers import SOLVERS, ExponentialEuler, SolverNeeds, solver_needs
 from ._system import StochasticSystem
@@ -631,19 +631,39 @@ def simulate(
         >>> bool(abs(ens.cov[-1, 2, 2] - k_uu) < 3 * ens.cov_se[-1, 2, 2])
         True
     """
+    run = run_options(
+        "simulate", t0=t0, t1=t1, dt=dt, steps=steps, solver=solver, save=save, batching=batching, adaptive=True
+    )
+    return simulate_run(
+        system,
+        y0,
+        key,
+        run,
+        n_paths=n_paths,
+        on_failure=on_failure,
+        progress_meter=progress_meter,
+        first_path=first_path,
+    )
+
+
+def simulate_run(
+    system: StochasticSystem,
+    y0,
+    key,
+    run: RunOptions,
+    *,
+    n_paths: int,
+    on_failure: Literal["raise", "exclude"] = "raise",
+    progress_meter: dfx.AbstractProgressMeter | None = None,
+    first_path: int = 0,
+) -> Ensemble:
+    """:func:`simulate` with its run options checked already (``run``): what the estimators' solves call."""
     if not isinstance(system, StochasticSystem):
         raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
     if on_failure not in ("raise", "exclude"):
         raise ValueError(f"on_failure={on_failure!r}; allowed: 'raise', 'exclude'.")
-    needs = solver_needs(solver, system)
-    if steps is None:
-        if dt is None:
-            raise TypeError("simulate needs a step: dt=… or steps=FixedSteps(dt=…) / AdaptiveSteps(dt=…).")
-        steps = FixedSteps(dt)
-    elif dt is not None:
-        raise TypeError(f"dt={dt} and steps={steps!r}: give the step once, in steps.")
-    if not isinstance(steps, AbstractSteps):
-        raise TypeError(f"steps={steps!r}; expected nhsde.FixedSteps(...) or nhsde.AdaptiveSteps(...).")
+    needs = solver_needs(run.solver, system)
+    steps = run.steps
     adaptive = isinstance(steps, AdaptiveSteps)
     if adaptive and not system.noise.continuous:
         raise ValueError("adaptive steps need a Wiener driver (VirtualBrownianTree); use FixedSteps.")
@@ -658,28 +678,10 @@ def simulate(
             f"first_path + n_paths = {first_path + n_paths} exceeds {MAX_PATH_INDEX}, the paths a key indexes; "
             "use another key for more paths."
         )
-    t0 = check_number("t0", t0)
-    t1 = check_number("t1", t1)
-    if t1 <= t0:
-        raise ValueError(f"t1={t1} must be > t0={t0}.")
-    step = float(steps.dt)
-    if step > t1 - t0:
-        raise ValueError(f"dt={step} is larger than t1 − t0 = {t1 - t0}.")
-    n_steps = check_steps("dt", t1 - t0, step)
-    substeps = 1
-    if isinstance(steps, FixedSteps):
-        if n_steps > steps.max_steps:
-            raise ValueError(
-                f"dt={step} makes {n_steps} steps of (t0, t1) = ({t0}, {t1}), beyond the budget "
-                f"max_steps={steps.max_steps}; raise it with steps=FixedSteps(dt, max_steps=…) to run this long."
-            )
-        if steps.brownian_dt is not None:
-            substeps = check_steps("brownian_dt", (t1 - t0) / n_steps, float(steps.brownian_dt))
+    t0, t1, n_steps, substeps, step = run.t0, run.t1, run.n_steps, run.substeps, float(steps.dt)
     y0 = _check_y0(system, y0, n_paths)
     key = check_key(key)
-    save = Save() if save is None else save
-    if not isinstance(save, Save):
-        raise TypeError(f"save={save!r}; expected nhsde.Save(...).")
+    save = Save() if run.save is None else run.save
     names = system.layout.names if save.names is None else save.names
     system.observe(names)  # checks the names
     n_save = save.n
@@ -693,9 +695,7 @@ def simulate(
         about = jnp.asarray(save.about, y0.dtype)
         if about.shape != (n_save, len(names)):
             raise ValueError(f"save.about has shape {about.shape}; expected ({n_save}, {len(names)}).")
-    batching = Batching() if batching is None else batching
-    if not isinstance(batching, Batching):
-        raise TypeError(f"batching={batching!r}; expected nhsde.Batching(...).")
+    batching = run.batching
     chunk_size = batching.chunk_size
     if chunk_size is None:
         chunk_size = min(BLOCK * math.ceil(n_paths / BLOCK), 8192)

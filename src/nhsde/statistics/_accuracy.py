@@ -51,8 +51,8 @@ import diffrax as dfx
 
 from .._brownian import BLOCK
 from .._ensemble import Save, SimulationError
-from .._misc import check_key, check_number, check_span, check_steps, is_concrete, split_key
-from .._options import AbstractSteps, Batching, estimator_step
+from .._misc import check_key, check_number, check_span, is_concrete, split_key
+from .._options import AbstractSteps, Batching, run_options
 from .._simulate import stable_step
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
@@ -269,9 +269,6 @@ def to_accuracy(
         rmse = check_number("rmse", rmse, positive=True)
     else:
         relative_rmse = check_number("relative_rmse", relative_rmse, positive=True)
-    grid = estimator_step(dt, steps, "to_accuracy", required=False)
-    dt = None if grid is None else grid.dt
-    t0, t1 = check_span(t0, t1)
     if antithetic is not None and not isinstance(antithetic, bool):
         raise TypeError(f"antithetic={antithetic!r}; expected None, True or False.")
     if antithetic:
@@ -296,16 +293,17 @@ def to_accuracy(
     # the first pilot: a solver that steps the system in its own calculus (no conversion each step), then the
     # highest weak order: the solver most alternatives choose
     first_solver = max(candidates, key=lambda c: (not c.converts(system), c.order))
-    default_step = dt is None
+    default_step = dt is None and steps is None
     own_step = default_step or _OWN_STEP.get()  # halved where paths fail: the default or its retry's half
     if default_step:  # the coarsest step: (t1 − t0)/4, halved until the first pilot's solver damps the friction
-        dt = (t1 - t0) / 4  # (another solver unstable there is listed as not applying: its pilot refuses the step)
+        t0, t1 = check_span(t0, t1)  # (another solver unstable there is listed as not applying: its pilot
+        dt = (t1 - t0) / 4  # refuses the step)
         while not stable_step(system, first_solver.solver, dt) and dt > (t1 - t0) / 2**30:
             dt /= 2
-    h0 = check_number("dt", dt, positive=True)
-    steps0 = check_steps("dt", t1 - t0, h0)
-    if save is not None and not isinstance(save, Save):
-        raise TypeError(f"save={save!r}; expected nhsde.Save(...).")
+    run = run_options(
+        "to_accuracy", t0=t0, t1=t1, dt=dt, steps=steps, solver=first_solver.solver, save=save, batching=batching
+    )
+    h0, steps0 = run.dt, run.n_steps
     statistic = as_statistic(statistic)
     statistic.check(system.observable_names() if save is None or save.names is None else save.names)
     names = statistic.names if save is None or save.names is None else save.names
@@ -313,6 +311,7 @@ def to_accuracy(
     if steps0 % (n_save - 1):
         raise ValueError(f"save.n={n_save}: n − 1 must divide the {steps0} steps of the coarsest step dt={h0}.")
     save = Save(names=names, n=n_save, paths=True)
+    run = dataclasses.replace(run, save=save)
     pilot_paths = check_number("pilot_paths", pilot_paths, integer=True)
     if pilot_paths < BLOCK or pilot_paths % BLOCK:
         raise ValueError(f"pilot_paths={pilot_paths}; must be a positive multiple of {BLOCK}.")
@@ -333,15 +332,10 @@ def to_accuracy(
         pilot_key=pilot_key,
         run_key=run_key,
         rmse=math.nan,
-        h0=h0,
-        steps0=steps0,
-        t0=t0,
-        t1=t1,
-        save=save,
+        run=run,
         statistic=statistic,
         pilot_paths=pilot_paths,
         pilot_levels=pilot_levels,
-        batching=batching,
         wrt=wrt,
         timed=cost == "seconds",
         pilot_keys={c.label: i for i, c in enumerate(candidates)},
@@ -358,7 +352,7 @@ def to_accuracy(
                 raise
             anti = first_solver.label in pricing.antithetic_pilots
             failed_work += pilot_paths * (2 if anti else 1) * pricing.steps0 * (2**pilot_levels - 1)
-            pricing.h0, pricing.steps0 = pricing.h0 / 2, pricing.steps0 * 2
+            pricing.run = pricing.run.at(pricing.h0 / 2)
     h0 = pricing.h0
     if rmse is None:
         value, se = first.values[-1], first.standard_errors[-1]

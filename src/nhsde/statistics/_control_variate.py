@@ -63,6 +63,7 @@ a control step also costs one Jacobian-vector product of the drift.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 
@@ -73,8 +74,8 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from .._ensemble import Save
-from .._misc import cast_floats, check_key, check_number, check_span, check_steps
-from .._options import AbstractSteps, Batching, estimator_step
+from .._misc import cast_floats, check_key, check_number
+from .._options import AbstractSteps, Batching, run_options
 from .._params import validated
 from .._simulate import MIN_PATHS
 from .._solvers import solver_needs
@@ -389,11 +390,10 @@ def control_variate(
     n_paths = check_number("n_paths", n_paths, integer=True)
     if n_paths < MIN_PATHS:
         raise ValueError(f"n_paths={n_paths}; must be ≥ {MIN_PATHS} (a covariance and its standard error need 4).")
-    steps = estimator_step(dt, steps, "control_variate", brownian_dt=True)
-    assert steps is not None
-    h = steps.dt
-    t0, t1 = check_span(t0, t1)
-    n_steps = check_steps("dt", t1 - t0, h)
+    options = run_options(
+        "control_variate", t0=t0, t1=t1, dt=dt, steps=steps, solver=solver, batching=batching, brownian_dt=True
+    )
+    n_steps = options.n_steps
     y0 = system.state(y0, "y0")
     solver_needs(solver, system)  # names the solver if it cannot solve the system
     save = paths_save(save, n_steps, system.layout.names)
@@ -411,14 +411,17 @@ def control_variate(
         "take fewer paths, or average runs of several keys.",
     )
 
+    options = dataclasses.replace(options, save=save)
+
     def run(s: StochasticSystem, start):
-        options = dict(t0=t0, t1=t1, steps=steps, solver=solver, save=save, batching=batching)
-        return solve_paths_with_tangents(s, start, key, wrt, first_path=0, n_paths=n_paths, **options)
+        return solve_paths_with_tangents(s, start, key, options, wrt, first_path=0, n_paths=n_paths)
 
     y, t_y = run(system, y0)
     c, t_c = run(control.system, control.start)
     on_host = array_module(y, c) is np
-    (ts, exact_mean, exact_cov), d_exact = control.exact(system, names, t0, t1, n_steps, n_save, wrt, on_host)
+    (ts, exact_mean, exact_cov), d_exact = control.exact(
+        system, names, options.t0, options.t1, n_steps, n_save, wrt, on_host
+    )
     (mean_y, cov_y, mvar_y, cvar_y), (mean_c, cov_c), beta, resid, reduction = fitted_controls([y], [c], [1.0])
     (beta_m, beta_c), (resid_m, resid_c), (red_m, red_c) = beta, resid, reduction
     derivatives = None

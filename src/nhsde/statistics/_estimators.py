@@ -24,7 +24,7 @@ import jax
 from .._brownian import BLOCK
 from .._ensemble import Save, SimulationError
 from .._misc import fold_key
-from .._options import Batching, FixedSteps
+from .._options import FixedSteps, RunOptions
 from .._system import StochasticSystem
 from ._control_variate import control_variate as linearised_control_variate
 from ._cost import MAX_REFINEMENTS, allocate, best_single, bias, level_cost, multilevel_plan, whole_pieces
@@ -68,29 +68,37 @@ class ControlPilot:
 
 @dataclasses.dataclass
 class Pricing:
-    """What every estimator prices from and runs with: the system, the target ``rmse``, the coarsest step ``h0``
-    (``steps0`` steps), the run options, and the pilots of the solvers (run once each, on demand, :meth:`pilot`)."""
+    """What every estimator prices from and runs with: the system, the target ``rmse``, the run options ``run`` at the
+    coarsest step ``h0`` (``steps0`` steps; its ``save`` keeps the paths), and the pilots of the solvers (run once
+    each, on demand, :meth:`pilot`)."""
 
     system: StochasticSystem
     y0: Any
     pilot_key: Any
     run_key: Any
     rmse: float
-    h0: float
-    steps0: int
-    t0: float
-    t1: float
-    save: Save  # names and times, per-path values kept
+    run: RunOptions
     statistic: AbstractStatistic
     pilot_paths: int
     pilot_levels: int
-    batching: Batching | None
     wrt: tuple[str, ...]
     timed: bool
     pilot_keys: dict[str, int]  # per solver label, the index its pilot key is folded with
     antithetic_pilots: frozenset[str]  # the solver labels whose pilots also run the reflected paths
     pilots: dict[str, PilotSummary] = dataclasses.field(default_factory=dict)
     control_pilots: dict[tuple[str, bool], ControlPilot] = dataclasses.field(default_factory=dict)
+
+    @property
+    def h0(self) -> float:
+        return self.run.dt
+
+    @property
+    def steps0(self) -> int:
+        return self.run.n_steps
+
+    def run_with(self, solver) -> RunOptions:
+        """The run options with ``solver``."""
+        return dataclasses.replace(self.run, solver=solver)
 
     def pilot(self, cand: Candidate) -> PilotSummary:
         """The pilot of ``cand`` at ``h0`` (run on first use; raises where its paths fail)."""
@@ -100,6 +108,7 @@ class Pricing:
                 self.y0,
                 self._pilot_key(cand),
                 cand,
+                self.run_with(cand.solver),
                 statistic=self.statistic,
                 timed=self.timed,
                 **self._pilot_options(cand),
@@ -153,29 +162,24 @@ class Pricing:
         added to the pilot's), where it has none."""
         pilot = self.pilots[cand.label]
         if math.isnan(pilot.seconds_per_path_step):
-            rate, work = pilot_rate(self.system, self.y0, self._pilot_key(cand), cand, **self._pilot_options(cand))
+            rate, work = pilot_rate(
+                self.system, self.y0, self._pilot_key(cand), self.run_with(cand.solver), **self._pilot_options(cand)
+            )
             self.pilots[cand.label] = dataclasses.replace(pilot, seconds_per_path_step=rate, work=pilot.work + work)
 
     def _pilot_key(self, cand: Candidate):
         return fold_key(self.pilot_key, self.pilot_keys[cand.label])
 
     def _pilot_options(self, cand: Candidate) -> dict[str, Any]:
-        return dict(
-            t0=self.t0,
-            t1=self.t1,
-            h0=self.h0,
-            levels=self.pilot_levels,
-            n_paths=self.pilot_paths,
-            save=self.save,
-            anti=cand.label in self.antithetic_pilots,
-            batching=self.batching,
-        )
+        return dict(levels=self.pilot_levels, n_paths=self.pilot_paths, anti=cand.label in self.antithetic_pilots)
 
     def run_options(self, keep_paths: bool = True, tangents: bool = True) -> dict[str, Any]:
         """The options every run shares: ``save`` without per-path values where the estimator keeps none, and the
         parameters ``wrt`` unless ``tangents`` is false (pilots)."""
-        save = self.save if keep_paths else Save(names=self.save.names, n=self.save.n)
-        options: dict[str, Any] = dict(t0=self.t0, t1=self.t1, save=save, batching=self.batching)
+        save = self.run.save
+        assert save is not None
+        save = save if keep_paths else Save(names=save.names, n=save.n)
+        options: dict[str, Any] = dict(t0=self.run.t0, t1=self.run.t1, save=save, batching=self.run.batching)
         return options | dict(wrt=self.wrt or None) if tangents else options
 
 
@@ -567,12 +571,10 @@ class _AbstractQuasiMonteCarlo(AbstractEstimator):
         h_b = pricing.h0 / 2 ** (pricing.pilot_levels - 1)
         steps_b = pricing.steps0 * 2 ** (pricing.pilot_levels - 1)
         n_ref = RUN_PATHS * math.ceil(path_steps / steps_b / RUN_PATHS)
-        reference = dict(
-            steps=FixedSteps(h_b, brownian_dt=h_b), solver=self.solver, **pricing.run_options(tangents=False)
-        )
+        reference = pricing.run_with(self.solver).at(h_b, brownian_dt=h_b)
         start = time.perf_counter()
         jax.block_until_ready(
-            solve_paths(pricing.system, pricing.y0, fold_key(key, 2), first_path=0, n_paths=n_ref, **reference)
+            solve_paths(pricing.system, pricing.y0, fold_key(key, 2), reference, first_path=0, n_paths=n_ref)
         )
         plain_rate = (time.perf_counter() - start) / (n_ref * steps_b)
         kappa = seconds / path_steps / plain_rate if plain_rate > 0 else math.nan
@@ -588,22 +590,18 @@ class _AbstractQuasiMonteCarlo(AbstractEstimator):
         pilot's program unless it is finer still."""
         m = pricing.system.noise_dim
         steps_b = pricing.steps0 << min(pricing.pilot_levels - 1 + QMC_FINER, _finest(pricing))
-        finest = round((pricing.t1 - pricing.t0) / h) << (len(max_points) - 1)
+        run = pricing.run_with(self.solver).at(h)
+        finest = run.n_steps << (len(max_points) - 1)
         return quasi_monte_carlo_to_variance(
             pricing.system,
             pricing.y0,
             key,
-            t0=pricing.t0,
-            t1=pricing.t1,
-            dt=h,
-            solver=self.solver,
-            save=pricing.save,
+            run,
             statistic=pricing.statistic,
             variance=variance,
             max_points=max_points,
             dimension=max(steps_b, finest) * m,
             replicates=QMC_REPLICATES,
-            batching=pricing.batching,
             wrt=wrt,
             antithetic=self.antithetic,
             control="mean" if self.control else None,

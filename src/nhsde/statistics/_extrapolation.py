@@ -15,6 +15,7 @@ per-path combination, not of two independent runs.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from typing import Any
 
@@ -25,8 +26,8 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from .._ensemble import Save
-from .._misc import check_number, check_span, check_steps
-from .._options import Batching, FixedSteps, estimator_step
+from .._misc import check_number
+from .._options import Batching, FixedSteps, run_options
 from .._solvers import solver_needs
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
@@ -104,11 +105,8 @@ def extrapolate(
     if order is None:
         order = 2 if isinstance(solver, PlatenWeak2) else 1
     p = check_number("order", order, positive=True)
-    grid = estimator_step(dt, steps, "extrapolate")
-    assert grid is not None
-    h = grid.dt
-    t0, t1 = check_span(t0, t1)
-    n_steps = check_steps("dt", t1 - t0, h)
+    run = run_options("extrapolate", t0=t0, t1=t1, dt=dt, steps=steps, solver=solver, batching=batching)
+    h, n_steps = run.dt, run.n_steps
     save = paths_save(save, n_steps, system.layout.names)
     assert save.names is not None and save.n is not None
     n_paths = check_number("n_paths", n_paths, integer=True)
@@ -122,15 +120,11 @@ def extrapolate(
         system,
         y0,
         key,
-        t0=t0,
-        t1=t1,
+        dataclasses.replace(run, save=save),
         dts=(h, h / 2),
         brownian_dt=h / 2,
-        solver=solver,
-        save=save,
         n_paths=n_paths,
         antithetic=bool(antithetic),
-        batching=batching,
         wrt=wrt,
     )
     share = 0.5 if antithetic else 1.0
@@ -138,7 +132,11 @@ def extrapolate(
     names, c = save.names, 1 / (2**p - 1)
     count = jax.device_put(np.asarray(n_paths))
     common = dict(
-        ts=np.linspace(t0, t1, save.n), n_paths=count, names=names, roles=roles_of(system, names), statistic=None
+        ts=np.linspace(run.t0, run.t1, save.n),
+        n_paths=count,
+        names=names,
+        roles=roles_of(system, names),
+        statistic=None,
     )
 
     def moments(coarse, fine) -> dict[str, Any]:

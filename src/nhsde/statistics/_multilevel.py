@@ -35,8 +35,10 @@ per-path values would not fit in memory are refused, with their size, before the
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
+from typing import Any
 
 import diffrax as dfx
 import equinox as eqx
@@ -46,8 +48,8 @@ from jaxtyping import Array, Float, Int
 
 from .._brownian import BLOCK
 from .._ensemble import Save
-from .._misc import check_key, check_number, check_span, check_steps, fold_key, is_concrete
-from .._options import AbstractSteps, Batching, estimator_step
+from .._misc import check_key, check_number, fold_key, is_concrete
+from .._options import AbstractSteps, Batching, RunOptions, run_options
 from .._solvers import solver_needs
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
@@ -104,12 +106,13 @@ class MultilevelEstimate(AbstractEstimate):
 class _Levels:
     """Level runs, their per-path values kept; with a control, the control's values follow the system's."""
 
-    def __init__(self, system, y0, key, *, t0, t1, h0, solver, save, antithetic, piece_paths, batching, wrt, control):
+    def __init__(self, system, y0, key, run: RunOptions, *, antithetic, piece_paths, wrt, control):
         self.args = (system, y0)
         self.key = key
-        self.opts = dict(t0=t0, t1=t1, solver=solver, save=save, antithetic=antithetic, batching=batching, wrt=wrt)
-        self.h0, self.piece_paths, self.antithetic = h0, piece_paths, antithetic
-        self.steps0 = round((t1 - t0) / h0)
+        assert run.save is not None and run.save.names is not None and run.save.n is not None
+        self.options, self.names, self.n_save = run, run.save.names, run.save.n  # at h0, the paths kept
+        self.wrt = wrt
+        self.h0, self.steps0, self.piece_paths, self.antithetic = run.dt, run.n_steps, piece_paths, antithetic
         self.control: LinearisedControl | None = control
         self.paths: list[list[list[Array]]] = []  # level → run → sets
         self.tangents: list[list[list[Array]]] = []  # the same, their tangents in wrt (empty without)
@@ -124,19 +127,25 @@ class _Levels:
 
     def check_memory(self, counts: Sequence[int], name: str, fix: str) -> None:
         """Refuse (naming ``name``) counts per level whose per-path values would not fit in memory."""
-        save, wrt = self.opts["save"], self.opts["wrt"]
-        per_sample = path_bytes(save.n, len(save.names), len(wrt))
+        per_sample = path_bytes(self.n_save, len(self.names), len(self.wrt))
         copies = (2 if self.antithetic else 1) * (1 if self.control is None else 2)
         sets = sum(n * (2 if level else 1) * copies for level, n in enumerate(counts))
         check_memory(name, peak_bytes(sets * per_sample), fix)
 
     def run(self, level: int, first_path: int, n_paths: int) -> tuple[list[Array], list[Array]]:
         h = self.h0 / 2**level
-        options = dict(dts=(h, 2 * h) if level else (h,), brownian_dt=h, n_paths=n_paths, first_path=first_path)
+        options: dict[str, Any] = dict(
+            dts=(h, 2 * h) if level else (h,),
+            brownian_dt=h,
+            n_paths=n_paths,
+            first_path=first_path,
+            antithetic=self.antithetic,
+            wrt=self.wrt,
+        )
         key = fold_key(self.key, level)  # the control is driven by the same Brownian path
-        paths, tangents = coupled_paths(*self.args, key, **options, **self.opts)
+        paths, tangents = coupled_paths(*self.args, key, self.options, **options)
         if self.control is not None:
-            c, t = coupled_paths(self.control.system, self.control.start, key, **options, **self.opts)
+            c, t = coupled_paths(self.control.system, self.control.start, key, self.options, **options)
             paths, tangents = paths + c, tangents + t
         return paths, tangents
 
@@ -188,10 +197,10 @@ class _Levels:
         """The control's exact moments ``(ts, mean, cov)`` and their tangents in ``wrt`` (computed once)."""
         assert self.control is not None
         if self._exact is None:
-            save, wrt = self.opts["save"], self.opts["wrt"]
-            t0, t1 = self.opts["t0"], self.opts["t1"]
-            on_host = array_module(self.paths[0]) is np
-            self._exact = self.control.exact(self.args[0], save.names, t0, t1, self.steps0, save.n, wrt, on_host)
+            run, on_host = self.options, array_module(self.paths[0]) is np
+            self._exact = self.control.exact(
+                self.args[0], self.names, run.t0, run.t1, self.steps0, self.n_save, self.wrt, on_host
+            )
         return self._exact
 
     def moments(self, level: int):
@@ -276,11 +285,8 @@ def multilevel_monte_carlo(
         raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
     if (rmse is None) == (n_paths is None):
         raise TypeError("multilevel_monte_carlo needs exactly one of rmse=… (adaptive) or n_paths=(N_0, …, N_L).")
-    grid = estimator_step(dt, steps, "multilevel_monte_carlo")
-    assert grid is not None
-    h0 = grid.dt
-    t0, t1 = check_span(t0, t1)
-    steps0 = check_steps("dt", t1 - t0, h0)
+    run = run_options("multilevel_monte_carlo", t0=t0, t1=t1, dt=dt, steps=steps, solver=solver, batching=batching)
+    h0, steps0 = run.dt, run.n_steps
     solver_needs(coupling_solver(solver), system)
     if not isinstance(antithetic, bool):
         raise TypeError(f"antithetic={antithetic!r}; expected True or False.")
@@ -311,14 +317,9 @@ def multilevel_monte_carlo(
         system,
         y0,
         key,
-        t0=t0,
-        t1=t1,
-        h0=h0,
-        solver=solver,
-        save=save,
+        dataclasses.replace(run, save=save),
         antithetic=antithetic,
         piece_paths=piece_paths,
-        batching=batching,
         wrt=wrt,
         control=linearised,
     )
@@ -362,7 +363,7 @@ def multilevel_monte_carlo(
         derivatives = Derivatives(d_mean, d_cov, safe_sqrt(d_mean_var), safe_sqrt(d_cov_var), wrt)
     level_costs = tuple(levels.cost(level) for level in range(len(counts)))
     estimate = MultilevelEstimate(
-        ts=np.linspace(t0, t1, mean.shape[0]),
+        ts=np.linspace(run.t0, run.t1, mean.shape[0]),
         mean=mean,
         cov=cov,
         mean_se=safe_sqrt(mean_var),

@@ -23,6 +23,7 @@ into per-scrambling sums, so memory does not grow with ``N_ℓ``.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from typing import Any
@@ -36,8 +37,8 @@ from jaxtyping import Array, Int, UInt
 
 from .._brownian import BLOCK
 from .._ensemble import Save
-from .._misc import check_key, check_number, check_span, check_steps, fold_key, is_concrete
-from .._options import Batching, FixedSteps, estimator_step
+from .._misc import check_key, check_number, fold_key, is_concrete
+from .._options import Batching, FixedSteps, RunOptions, run_options
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
 from ._control_variate import LinearisedControl, PerEntry
@@ -113,15 +114,10 @@ class _QmcLevels:
         system,
         y0,
         key,
+        run: RunOptions,
         *,
-        t0,
-        t1,
-        h0,
-        solver,
-        save,
         replicates,
         dimension,
-        batching,
         wrt=(),
         antithetic=False,
         control: LinearisedControl | None = None,
@@ -130,9 +126,9 @@ class _QmcLevels:
         self.control = control
         self._fitted: tuple[int, tuple] | None = None  # (level-0 points, (β_mean, β_cov)) of the control
         self._exact_moments = None
-        self.opts = dict(t0=t0, t1=t1, solver=solver, save=save, batching=batching)
-        self.h0, self.replicates, self.dimension = h0, replicates, dimension
-        self.steps0 = round((t1 - t0) / h0)
+        assert run.save is not None and run.save.names is not None and run.save.n is not None
+        self.run, self.names, self.n_save = run, run.save.names, run.save.n  # at h0, the paths kept
+        self.h0, self.steps0, self.replicates, self.dimension = run.dt, run.n_steps, replicates, dimension
         self.points: list[int] = []  # N_ℓ per scrambling
         # level → per solve: sums of the values (R, n, k) and of their outer products (R, n, k, k); with wrt, of
         # their tangents (p, R, n, k) and of the tangents of the outer products (p, R, n, k, k)
@@ -175,13 +171,13 @@ class _QmcLevels:
                     driven,
                     y0,
                     fold_key(self.key, level),
+                    self.run,
                     dts=dts,
                     brownian_dt=h,
                     n_paths=size,
                     first_path=first,
                     antithetic=self.antithetic,
                     wrt=self.wrt,
-                    **self.opts,
                 )
                 for a, sums in enumerate(self._reduced(paths, tangents, len(dts))):
                     slot = index * len(dts) + a
@@ -284,9 +280,9 @@ class _QmcLevels:
         """The control's exact moments and their tangents in ``wrt`` (computed once)."""
         assert self.control is not None
         if self._exact_moments is None:
-            save = self.opts["save"]
+            run = self.run
             self._exact_moments = self.control.exact(
-                self.system, save.names, self.opts["t0"], self.opts["t1"], self.steps0, save.n, self.wrt, True
+                self.system, self.names, run.t0, run.t1, self.steps0, self.n_save, self.wrt, True
             )
         return self._exact_moments
 
@@ -354,14 +350,13 @@ def multilevel_quasi_monte_carlo(
         raise TypeError(
             "multilevel_quasi_monte_carlo needs exactly one of rmse=… (adaptive) or n_points=(N_0, …, N_L)."
         )
-    grid = estimator_step(dt, steps, "multilevel_quasi_monte_carlo")
-    assert grid is not None
-    h0 = grid.dt
-    t0, t1 = check_span(t0, t1)
-    steps0 = check_steps("dt", t1 - t0, h0)
+    run = run_options(
+        "multilevel_quasi_monte_carlo", t0=t0, t1=t1, dt=dt, steps=steps, solver=solver, batching=batching
+    )
+    h0, steps0 = run.dt, run.n_steps
     if steps0 & (steps0 - 1):
         raise ValueError(
-            f"dt={dt}: (t1 − t0)/dt = {steps0} base steps; multilevel quasi-Monte Carlo needs a power of two such "
+            f"dt={h0}: (t1 − t0)/dt = {steps0} base steps; multilevel quasi-Monte Carlo needs a power of two such "
             f"as {1 << (steps0.bit_length() - 1)} or {1 << steps0.bit_length()} (the Brownian bridge's grid)."
         )
     if not system.noise.continuous:
@@ -374,7 +369,7 @@ def multilevel_quasi_monte_carlo(
     m = system.noise_dim
     if steps0 * m > MAX_DIMENSION:
         raise ValueError(
-            f"dt={dt}, t1={t1}: {steps0} steps × {m} channels = {steps0 * m} Sobol' dimensions, beyond the "
+            f"dt={h0}, t1={t1}: {steps0} steps × {m} channels = {steps0 * m} Sobol' dimensions, beyond the "
             f"{MAX_DIMENSION} of the direction numbers; take a larger dt or a shorter t1 − t0."
         )
     replicates = check_number("replicates", replicates, integer=True)
@@ -398,7 +393,7 @@ def multilevel_quasi_monte_carlo(
     top = min(max_levels, by_dimension)
     if rmse is not None and top < 2:
         raise ValueError(
-            f"dt={dt}: the second level's {2 * steps0} steps × {m} channels exceed the {MAX_DIMENSION} Sobol' "
+            f"dt={h0}: the second level's {2 * steps0} steps × {m} channels exceed the {MAX_DIMENSION} Sobol' "
             "dimensions, and rmse=… needs two levels; take a larger dt or a shorter t1 − t0."
         )
     statistic = as_statistic(statistic)
@@ -421,7 +416,7 @@ def multilevel_quasi_monte_carlo(
         if len(counts) > by_dimension:
             raise ValueError(
                 f"n_points={n_points!r}: {len(counts)} levels, but only {by_dimension} fit the {MAX_DIMENSION} "
-                f"Sobol' dimensions at dt={dt} with {m} channels."
+                f"Sobol' dimensions at dt={h0} with {m} channels."
             )
         top = len(counts)
     dimension = (steps0 << (top - 1)) * m
@@ -429,14 +424,9 @@ def multilevel_quasi_monte_carlo(
         system,
         y0,
         key,
-        t0=t0,
-        t1=t1,
-        h0=h0,
-        solver=solver,
-        save=save,
+        dataclasses.replace(run, save=save),
         replicates=replicates,
         dimension=dimension,
-        batching=batching,
         wrt=wrt,
         antithetic=antithetic,
         control=linearised,
@@ -509,12 +499,12 @@ def _estimate(levels: _QmcLevels, moments, statistic: AbstractStatistic, alpha: 
     if tangents:  # the levels are independent: their derivatives' variances add
         d_mean, d_cov, d_mean_var, d_cov_var = tangents
         derivatives = Derivatives(d_mean, d_cov, safe_sqrt(d_mean_var), safe_sqrt(d_cov_var), levels.wrt)
-    names = levels.opts["save"].names
+    names = levels.names
     level_means = np.stack([_pick(statistic, names, mm[0], mm[1]) for mm in moments])
     level_vars = np.stack([_pick(statistic, names, mm[2], mm[3]) * n for mm, n in zip(moments, samples)])
     level_costs = tuple(levels.cost(level) for level in range(n_levels))
     fields: dict[str, Any] = dict(
-        ts=np.linspace(levels.opts["t0"], levels.opts["t1"], mean.shape[0]),
+        ts=np.linspace(levels.run.t0, levels.run.t1, mean.shape[0]),
         mean=mean,
         cov=cov,
         mean_se=safe_sqrt(mean_var),
@@ -540,47 +530,39 @@ def quasi_monte_carlo_to_variance(
     system: StochasticSystem,
     y0,
     key,
+    run: RunOptions,
     *,
-    t0: float,
-    t1: float,
-    dt: float,
-    solver,
-    save: Save,
     statistic: AbstractStatistic,
     variance: float,
     max_points: Sequence[int],
     dimension: int,
     replicates: int = 16,
-    batching: Batching | None = None,
     wrt: tuple[str, ...] = (),
     antithetic: bool = False,
     control=None,
 ) -> MultilevelEstimate:
-    """Randomised quasi-Monte Carlo on the levels ``h = dt … dt 2^{1−L}`` of the module, ``L = len(max_points)``
-    (one level: plain quasi-Monte Carlo at ``dt``): 64 points per scrambling on every level, then the points of the
-    level with the most variance per unit of work doubled until the squared standard error of ``statistic`` is
-    at most ``variance``, or every level ``ℓ`` has ``max_points[ℓ]`` (powers of two).  Every point count runs in the
-    compiled programs of the driver's ``dimension`` (≥ the finest level's ``(t1 − t0)/h × channels``; ``save``
-    keeps the per-path values); ``bias`` is the levels' estimate (``nan`` for one level); with parameter names
-    ``wrt``, ``derivatives`` from the points' tangents; ``antithetic``: each point with its reflection, ``control``:
-    the linearised system as a control variate (as :func:`multilevel_quasi_monte_carlo`).  For the estimators' own
-    checked arguments: a run that stops where it is accurate enough, unlike counts fixed in advance at the
-    Monte-Carlo rate, on levels fixed in advance (their bias bounded by the estimator's pilot)."""
+    """Randomised quasi-Monte Carlo with the options ``run`` on the levels ``h = dt … dt 2^{1−L}`` of the module
+    (``dt`` its step), ``L = len(max_points)`` (one level: plain quasi-Monte Carlo at ``dt``): 64 points per
+    scrambling on every level, then the points of the level with the most variance per unit of work doubled until
+    the squared standard error of ``statistic`` is at most ``variance``, or every level ``ℓ`` has ``max_points[ℓ]``
+    (powers of two).  Every point count runs in the compiled programs of the driver's ``dimension`` (≥ the finest
+    level's ``(t1 − t0)/h × channels``; ``run.save`` keeps the per-path values); ``bias`` is the levels' estimate
+    (``nan`` for one level); with parameter names ``wrt``, ``derivatives`` from the points' tangents;
+    ``antithetic``: each point with its reflection, ``control``: the linearised system as a control variate (as
+    :func:`multilevel_quasi_monte_carlo`).  For the estimators' own checked arguments: a run that stops where it is
+    accurate enough, unlike counts fixed in advance at the Monte-Carlo rate, on levels fixed in advance (their bias
+    bounded by the estimator's pilot)."""
     watch = Stopwatch()
+    save = run.save
+    assert save is not None and save.names is not None and save.paths
     names = save.names
-    assert names is not None and save.paths
     levels = _QmcLevels(
         system,
         y0,
         key,
-        t0=t0,
-        t1=t1,
-        h0=dt,
-        solver=solver,
-        save=save,
+        run,
         replicates=replicates,
         dimension=dimension,
-        batching=batching,
         wrt=wrt,
         antithetic=antithetic,
         control=None if control is None else LinearisedControl(system, y0, control, names, "control"),
@@ -589,4 +571,4 @@ def quasi_monte_carlo_to_variance(
         levels.grow(level, min(BLOCK, most))
     moments = [levels.moments(level) for level in range(len(max_points))]
     _double(levels, moments, variance, max_points, statistic, save.names)
-    return _estimate(levels, moments, statistic, 2.0 if isinstance(solver, PlatenWeak2) else 1.0, watch)
+    return _estimate(levels, moments, statistic, 2.0 if isinstance(run.solver, PlatenWeak2) else 1.0, watch)

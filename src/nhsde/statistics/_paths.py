@@ -25,8 +25,8 @@ from jaxtyping import Array
 
 from .._ensemble import Save
 from .._misc import fold_key, is_concrete, under_trace
-from .._options import Batching, FixedSteps
-from .._simulate import forward_only, priced_steps, simulate
+from .._options import FixedSteps, RunOptions
+from .._simulate import forward_only, priced_steps, simulate_run
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
 from ._estimate import Values
@@ -212,15 +212,15 @@ def counted_path_steps() -> Iterator[Callable[[], float]]:
         _SOLVED.reset(token)
 
 
-def solve_paths(system: StochasticSystem, y0, key, *, first_path: int, n_paths: int, **options) -> Values:
+def solve_paths(system: StochasticSystem, y0, key, run: RunOptions, *, first_path: int, n_paths: int) -> Values:
     """Per-path saved values of paths ``first_path … first_path + n_paths − 1`` (:data:`KEY_PATHS` per key) by
-    :func:`~nhsde.simulate` with ``options`` (whose ``save`` keeps the paths), in the runs of :func:`runs`;
+    :func:`~nhsde.simulate` with the options ``run`` (whose ``save`` keeps the paths), in the runs of :func:`runs`;
     concrete values are gathered on the host (:func:`array_module`)."""
-    return _joined(*_solve_runs(system, y0, key, first_path=first_path, n_paths=n_paths, **options))
+    return _joined(*_solve_runs(system, y0, key, run, first_path=first_path, n_paths=n_paths))
 
 
 def solve_paths_with_tangents(
-    system: StochasticSystem, y0, key, wrt: tuple[str, ...], *, first_path: int, n_paths: int, **options
+    system: StochasticSystem, y0, key, run: RunOptions, wrt: tuple[str, ...], *, first_path: int, n_paths: int
 ) -> tuple[Values, Values | None]:
     """:func:`solve_paths` and the paths' tangents ``(len(wrt), n_paths, n, k)`` in the parameters ``wrt`` (forward
     mode, :func:`with_tangents`; ``None`` without ``wrt``).  The runs are differentiated whole and joined after, on
@@ -229,7 +229,7 @@ def solve_paths_with_tangents(
     keeps: list[int] = []
 
     def whole_runs(solved: StochasticSystem):
-        parts, kept = _solve_runs(solved, y0, key, first_path=first_path, n_paths=n_paths, **options)
+        parts, kept = _solve_runs(solved, y0, key, run, first_path=first_path, n_paths=n_paths)
         keeps[:] = kept
         return parts
 
@@ -237,36 +237,35 @@ def solve_paths_with_tangents(
     return _joined(parts, keeps), None if tangents is None else _joined(tangents, keeps, axis=1)
 
 
-def _solve_runs(system: StochasticSystem, y0, key, *, first_path: int, n_paths: int, **options):
+def _solve_runs(system: StochasticSystem, y0, key, run: RunOptions, *, first_path: int, n_paths: int):
     """The saved paths of each whole run of :func:`solve_paths`, and how many of each run's paths it keeps."""
     parts, keeps = [], []
     system = signed(system)  # one program for the paths and their reflections
-    steps = options.get("steps")
-    if isinstance(steps, FixedSteps) and steps.brownian_dt is None:  # the base step as data: one program for all
-        options = {**options, "steps": FixedSteps(steps.dt, brownian_dt=steps.dt, max_steps=steps.max_steps)}
+    if isinstance(run.steps, FixedSteps) and run.steps.brownian_dt is None:  # the base step as data: one program
+        run = run.at(run.steps.dt, brownian_dt=run.steps.dt)
     rows = np.ndim(y0) == 2  # a state per path: each run takes its rows, its surplus paths start from the last
     if rows and np.shape(y0)[0] != n_paths:
         raise ValueError(f"y0 has shape {np.shape(y0)}; expected ({n_paths}, {np.shape(y0)[1]}): one row per path.")
     done = 0
     for k, first, size in key_segments(key, first_path, n_paths):
         start = first
-        for run in runs(size):
-            keep = min(run, first + size - start)
+        for size_of_run in runs(size):
+            keep = min(size_of_run, first + size - start)
             start_states = y0
             if rows:
                 xp = array_module(y0)
                 part = y0[done : done + keep]
-                start_states = xp.concatenate([part, xp.repeat(part[-1:], run - keep, axis=0)])
+                start_states = xp.concatenate([part, xp.repeat(part[-1:], size_of_run - keep, axis=0)])
             counter = _SOLVED.get()
             if counter is not None:  # counted before the solve: a run that fails was done all the same
-                counter[0] += run * round((options["t1"] - options.get("t0", 0.0)) / options["steps"].dt)
+                counter[0] += size_of_run * run.n_steps
             with priced_steps():
-                ens = simulate(system, start_states, k, n_paths=run, first_path=start, **options)
+                ens = simulate_run(system, start_states, k, run, n_paths=size_of_run, first_path=start)
             assert ens.paths is not None
             parts.append(ens.paths)
             keeps.append(keep)
             done += keep
-            start += run
+            start += size_of_run
     return parts, keeps
 
 
@@ -282,40 +281,25 @@ def coupled_paths(
     system: StochasticSystem,
     y0,
     key,
+    run: RunOptions,
     *,
-    t0: float,
-    t1: float,
     dts: Sequence[float],
     brownian_dt: float,
-    solver,
-    save: Save,
     n_paths: int,
     antithetic: bool,
-    batching: Batching | None,
     first_path: int = 0,
     wrt: tuple[str, ...] = (),
 ) -> tuple[list[Array], list[Array]]:
-    """Per-path saved values ``(n_paths, n, k)`` of paths ``first_path …`` (:data:`KEY_PATHS` per key) solved at
-    each of ``dts`` on one Brownian path of step ``brownian_dt``; with ``antithetic``, then the same for the
-    reflected paths.  With parameter names ``wrt``, also their tangents ``(len(wrt), n_paths, n, k)`` (forward
-    mode); else an empty list."""
+    """Per-path saved values ``(n_paths, n, k)`` of paths ``first_path …`` (:data:`KEY_PATHS` per key) solved with
+    the options ``run`` at each of ``dts`` on one Brownian path of step ``brownian_dt``; with ``antithetic``, then
+    the same for the reflected paths.  With parameter names ``wrt``, also their tangents ``(len(wrt), n_paths, n,
+    k)`` (forward mode); else an empty list."""
     systems = (system, reflected(system)) if antithetic else (system,)
     out, tangents = [], []
     for s in systems:
         for dt in dts:
             z, t = solve_paths_with_tangents(
-                s,
-                y0,
-                key,
-                wrt,
-                first_path=first_path,
-                n_paths=n_paths,
-                t0=t0,
-                t1=t1,
-                steps=FixedSteps(dt, brownian_dt=brownian_dt),
-                solver=solver,
-                save=save,
-                batching=batching,
+                s, y0, key, run.at(dt, brownian_dt=brownian_dt), wrt, first_path=first_path, n_paths=n_paths
             )
             out.append(z)
             if wrt:

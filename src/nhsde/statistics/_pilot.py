@@ -7,13 +7,13 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from typing import Any
 
 import diffrax as dfx
 import jax
 import numpy as np
 
 from .._misc import check_number, fold_key
+from .._options import RunOptions
 from .._solvers import solver_needs
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
@@ -74,16 +74,13 @@ def candidate(solver: str | dfx.AbstractSolver, weak_order: int | None = None) -
 # --- the pilot --------------------------------------------------------------------------------------------------
 
 
-def _pilot_paths(system, y0, key, cand: Candidate, *, t0, t1, h0, levels, n_paths, save, anti, batching):
-    """The pilot's per-path values (``coupled_paths``) and its work in path-steps."""
-    dts = tuple(h0 / 2**ell for ell in range(levels))
-    steps0 = round((t1 - t0) / h0)
-    opts: dict[str, Any] = dict(
-        t0=t0, t1=t1, dts=dts, brownian_dt=dts[-1], solver=cand.solver, save=save, batching=batching
-    )
-    paths, _ = coupled_paths(system, y0, key, n_paths=n_paths, antithetic=anti, **opts)
+def _pilot_paths(system, y0, key, run: RunOptions, *, levels: int, n_paths: int, anti: bool):
+    """The pilot's per-path values (``coupled_paths`` at ``run``'s step ``h0`` and its halvings) and its work in
+    path-steps."""
+    dts = tuple(run.dt / 2**ell for ell in range(levels))
+    paths, _ = coupled_paths(system, y0, key, run, dts=dts, brownian_dt=dts[-1], n_paths=n_paths, antithetic=anti)
     jax.block_until_ready(paths)
-    return paths, float(n_paths * (2 if anti else 1) * sum(steps0 * 2**ell for ell in range(levels)))
+    return paths, float(n_paths * (2 if anti else 1) * sum(run.n_steps * 2**ell for ell in range(levels)))
 
 
 def level_bias_bound(terms, variances, h0: float, p: int) -> float:
@@ -97,21 +94,24 @@ def level_bias_bound(terms, variances, h0: float, p: int) -> float:
     )
 
 
-def pilot_rate(system, y0, key, cand: Candidate, **options) -> tuple[float, float]:
-    """``(seconds per path-step, path-steps)`` of one more run of ``cand``'s pilot (``run_pilot``'s ``options``),
-    compiled by the pilot: its programs' own speed, for comparing solvers whose path-steps cost differently."""
+def pilot_rate(system, y0, key, run: RunOptions, **options) -> tuple[float, float]:
+    """``(seconds per path-step, path-steps)`` of one more run of a pilot (``run_pilot``'s ``run`` and
+    ``options``), compiled by the pilot: its programs' own speed, for comparing solvers whose path-steps cost
+    differently."""
     start = time.perf_counter()
-    _, work = _pilot_paths(system, y0, fold_key(key, 1), cand, **options)
+    _, work = _pilot_paths(system, y0, fold_key(key, 1), run, **options)
     return (time.perf_counter() - start) / work, work
 
 
-def run_pilot(system, y0, key, cand: Candidate, *, statistic, timed, **options):
-    paths, work = _pilot_paths(system, y0, key, cand, **options)
-    levels, n_paths, anti, h0, save = (options[k] for k in ("levels", "n_paths", "anti", "h0", "save"))
+def run_pilot(system, y0, key, cand: Candidate, run: RunOptions, *, statistic, timed, **options):
+    paths, work = _pilot_paths(system, y0, key, run, **options)
+    levels, n_paths, anti, h0 = options["levels"], options["n_paths"], options["anti"], run.dt
+    assert run.save is not None and run.save.names is not None
+    names = run.save.names
     dts = tuple(h0 / 2**ell for ell in range(levels))
     rate = math.nan
     if timed:  # compiled now: time a second run of the same programs
-        rate, more = pilot_rate(system, y0, key, cand, **options)
+        rate, more = pilot_rate(system, y0, key, run, **options)
         work += more
     plain, refl = paths[:levels], paths[levels:]
     if not all(np.all(np.isfinite(p)) for p in paths):
@@ -121,7 +121,7 @@ def run_pilot(system, y0, key, cand: Candidate, *, statistic, timed, **options):
         )
 
     def stat(sets, weights):
-        value, var = pick_moments(statistic, save.names, paired_moments(sets, weights))
+        value, var = pick_moments(statistic, names, paired_moments(sets, weights))
         return value, max(var, 0.0)
 
     def anti_stat(ells, weights):  # the pair average of the combination: weights halved on both sets

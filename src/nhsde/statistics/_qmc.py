@@ -42,9 +42,9 @@ from jaxtyping import Array, Float, Int, PRNGKeyArray, UInt
 
 from .._brownian import BLOCK, AbstractDriver
 from .._ensemble import Save
-from .._misc import check_key, check_number, check_span, check_steps, fold_key
-from .._options import Batching, FixedSteps, estimator_step
-from .._simulate import MAX_PATH_INDEX, simulate
+from .._misc import check_key, check_number, fold_key
+from .._options import Batching, FixedSteps, run_options
+from .._simulate import MAX_PATH_INDEX, simulate_run
 from .._solvers import SOLVERS, solver_needs
 from .._system import StochasticSystem
 from .._weak import GaussianWeakIncrement
@@ -339,11 +339,11 @@ def quasi_monte_carlo(
             f"replicates={replicates}, n_paths={n_paths}: {replicates * n_paths} paths in one run, beyond the "
             f"{MAX_PATH_INDEX + 1} it indexes; take fewer."
         )
-    grid = estimator_step(dt, steps, "quasi_monte_carlo")  # (a point set fixed in advance: no adaptive steps)
-    assert grid is not None
-    dt = grid.dt
-    t0, t1 = check_span(t0, t1)
-    n_base = check_steps("dt", t1 - t0, dt)
+    # a point set fixed in advance: no adaptive steps
+    run = run_options(
+        "quasi_monte_carlo", t0=t0, t1=t1, dt=dt, steps=steps, solver=solver, save=save, batching=batching
+    )
+    dt, n_base = run.dt, run.n_steps
     if n_base & (n_base - 1):
         raise ValueError(
             f"dt={dt}: (t1 − t0)/dt = {n_base} base steps; quasi-Monte Carlo needs a power of two such as "
@@ -356,9 +356,7 @@ def quasi_monte_carlo(
             f"{MAX_DIMENSION} of the direction numbers; take a larger dt or a shorter t1 − t0."
         )
     key = check_key(key)
-    save = Save() if save is None else save
-    if not isinstance(save, Save):
-        raise TypeError(f"save={save!r}; expected nhsde.Save(...).")
+    save = Save() if run.save is None else run.save
     names = system.layout.names if save.names is None else save.names
 
     v, shift = stacked_scramblings(key, replicates, n_base * m)  # independent scramblings
@@ -366,7 +364,7 @@ def quasi_monte_carlo(
     driven = eqx.tree_at(
         lambda s: s.noise, system, ScrambledSobol(v=v, shift=shift, blocks=blocks, n_base=n_base, channels=m)
     )
-    kept = dataclasses.replace(save, paths=True)
+    run = dataclasses.replace(run, save=dataclasses.replace(save, paths=True))
     paths_key = fold_key(key, replicates)  # the pseudo-random parts (PlatenWeak2's V): no scrambling's key
 
     def moments(s):
@@ -374,18 +372,7 @@ def quasi_monte_carlo(
         of their reflections: the averages over both)."""
         zs = []
         for solved in (s, reflected(s)) if antithetic else (s,):
-            ens = simulate(
-                solved,
-                y0,
-                paths_key,
-                n_paths=replicates * n_paths,
-                t0=t0,
-                t1=t1,
-                dt=dt,
-                solver=solver,
-                save=kept,
-                batching=batching,
-            )
+            ens = simulate_run(solved, y0, paths_key, run, n_paths=replicates * n_paths)
             assert ens.paths is not None
             xp = array_module(ens.paths)  # concrete: on the host in float64, no program per shape
             z = np.asarray(ens.paths, np.float64) if xp is np else ens.paths

@@ -28,6 +28,7 @@ unlike in ``K`` itself, where ``E F = 0`` makes it second order.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 from collections.abc import Sequence
 from typing import Literal
 
@@ -41,9 +42,9 @@ from jaxtyping import Array, Bool, Float, Int
 from .._ensemble import AbstractMoments, Ensemble, Save, check_result, covariance_variance, failure_result
 from .._interrupt import watching
 from .._misc import is_concrete, under_trace
-from .._options import AbstractSteps, Batching, FixedSteps
+from .._options import AbstractSteps, Batching, RunOptions, run_options
 from .._params import AbstractParameters, checked_on_host
-from .._simulate import check_on_host, simulate
+from .._simulate import check_on_host, simulate_run
 from .._system import StochasticSystem
 
 __all__ = ["Sensitivities", "moment_sensitivities"]
@@ -159,13 +160,13 @@ def _statistics(paths, tangents, simulation_failed):
 
 
 @eqx.filter_jit
-def _sensitivities(system: StochasticSystem, wrt: tuple[str, ...], values, y0, key, options: dict):
+def _sensitivities(system: StochasticSystem, wrt: tuple[str, ...], values, y0, key, run: RunOptions, options: dict):
     """Per-path values and their tangents in ``wrt`` (forward mode), reduced by :func:`_statistics`; one program."""
 
     def per_path(*theta):
         system_theta = system.replace_params(**dict(zip(wrt, theta, strict=True)))
         # failures are decided by the caller, non-finite tangents included
-        ens = simulate(system_theta, y0, key, on_failure="exclude", **options)
+        ens = simulate_run(system_theta, y0, key, run, on_failure="exclude", **options)
         return ens.paths, ens
 
     tangents, ens = jax.jacfwd(per_path, argnums=tuple(range(len(wrt))), has_aux=True)(*values)
@@ -177,25 +178,19 @@ def _sensitivities(system: StochasticSystem, wrt: tuple[str, ...], values, y0, k
     return ens, moments, d_moments, count, n_failed, failed, overflow
 
 
-def _step_checked_here(system: StochasticSystem, y0, values, dt, steps) -> float | None:
-    """The step, where the run's checks can be made on the host, else ``None``.
+def _step_checked_here(system: StochasticSystem, y0, values, run: RunOptions) -> float | None:
+    """``run``'s step, where the run's checks can be made on the host, else ``None``.
 
     On the host: a plain call (nothing traced) in which no differentiated parameter is 0 (√ν's derivative is finite
     there).  Its checks are then made by the caller before the run, and the run is traced in
     :func:`~nhsde._params.checked_on_host`: no host callback in the program, which enters JAX's persistent
-    compilation cache.  Where the step is not given as ``simulate`` takes it, ``None``: ``simulate`` refuses it.
+    compilation cache.
     """
     if under_trace() or not is_concrete(system.params, values, y0):
         return None  # traced: the checks stay in the program (`eqx.error_if`), with the same messages
     if not all(bool(np.all(np.asarray(v) != 0)) for v in values):
         return None  # a derivative at ν = 0 is singular: the program's check raises it
-    if steps is None:
-        if dt is None:
-            return None
-        steps = FixedSteps(dt)  # a bad step raises here as in simulate
-    elif dt is not None or not isinstance(steps, AbstractSteps):
-        return None
-    return float(steps.dt)
+    return float(run.steps.dt)
 
 
 def moment_sensitivities(
@@ -241,24 +236,22 @@ def moment_sensitivities(
     if on_failure not in ("raise", "exclude"):
         raise ValueError(f"on_failure={on_failure!r}; allowed: 'raise', 'exclude'.")
     wrt = check_wrt(system, wrt)
-    save = Save() if save is None else save
-    if not isinstance(save, Save):
-        raise TypeError(f"save={save!r}; expected nhsde.Save(...).")
-    save = Save(names=save.names, n=save.n, paths=True, about=save.about)
-    values = tuple(jnp.asarray(getattr(system.params, name)) for name in wrt)
-    options = dict(
-        n_paths=n_paths,
+    run = run_options(
+        "moment_sensitivities",
+        t0=t0,
         t1=t1,
         dt=dt,
-        t0=t0,
-        solver=solver,
         steps=steps,
+        solver=solver,
         save=save,
         batching=batching,
-        first_path=first_path,
-        progress_meter=progress_meter,
+        adaptive=True,
     )
-    step = _step_checked_here(system, y0, values, dt, steps)
+    save = Save() if run.save is None else run.save
+    run = dataclasses.replace(run, save=Save(names=save.names, n=save.n, paths=True, about=save.about))
+    values = tuple(jnp.asarray(getattr(system.params, name)) for name in wrt)
+    options = dict(n_paths=n_paths, first_path=first_path, progress_meter=progress_meter)
+    step = _step_checked_here(system, y0, values, run)
     if step is not None:
         # simulate's checks, made now on the concrete parameters (its run, traced with them as tangents, cannot):
         # y0, the ranges in the state's precision and the step's stability (its plain call's messages and warning);
@@ -266,7 +259,7 @@ def moment_sensitivities(
         y0 = check_on_host(system, y0, n_paths=n_paths, solver=solver, dt=step)
     with watching():  # Ctrl-C stops the compiled run
         with checked_on_host() if step is not None else contextlib.nullcontext():
-            out = _sensitivities(system, wrt, values, y0, key, options)
+            out = _sensitivities(system, wrt, values, y0, key, run, options)
         if not under_trace():
             jax.block_until_ready(out)
     ens, moments, d_moments, count, n_failed, failed, overflow = out
