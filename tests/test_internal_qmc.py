@@ -40,6 +40,26 @@ def test_scrambled_points_stratify_every_dimension():
     assert not np.array_equal(np.asarray(unscrambled), x[:4])
 
 
+def test_the_extreme_points_give_finite_normals_in_either_precision():
+    """The points ``x = 0`` and ``x = 2^32 − 1`` (a scrambled coordinate reaches them once in 2^32 draws) map to
+    ``u`` strictly inside (0, 1) and to finite, opposite normals in float32 and float64.  In float32 with the top 24
+    bits, ``2^24 − 1 + 1/2`` rounded to ``2^24``: ``u = 1``, an infinite increment, and a failed path (found as
+    one failed path in 16 × 1024 on the sleigh, key 2, float32)."""
+    n_base, m = 4, 1
+    v = jnp.zeros((1, n_base * m, 32), jnp.uint32)
+    lanes = jnp.arange(2, dtype=jnp.uint32)
+    for dtype, top in ((jnp.float32, 1 - 2.0**-24), (jnp.float64, 1 - 2.0**-33)):
+        z = []
+        for fill in (0, 2**32 - 1):
+            shift = jnp.full((1, n_base * m), fill, jnp.uint32)
+            driver = ScrambledSobol(v=v, shift=shift, blocks=jnp.int32(1), n_base=n_base, channels=m)
+            z.append(np.asarray(driver._normals(jnp.int32(0), jnp.uint32(0), lanes, jnp.int32(0), dtype)))
+        low, high = z
+        assert np.all(np.isfinite(low)) and np.all(np.isfinite(high)), dtype
+        np.testing.assert_allclose(high, -low, rtol=1e-6)
+        assert float(high.max()) > 4.5 and float(high.max()) < 6.5, (dtype, float(high.max()), top)
+
+
 def test_increments_have_the_wiener_law_and_sum_to_the_endpoint():
     n_base, m, blocks = 16, 2, 64  # 4096 paths
     v, shift = stacked_scramblings(jax.random.key(2), 2, n_base * m)  # two scramblings of 2048 points

@@ -114,8 +114,8 @@ class SobolDriver(AbstractDriver):
         )
         if jnp.finfo(dtype).bits > 32:
             u = (x.astype(dtype) + 0.5) / 2.0**32
-        else:  # the top 24 bits, so that u never rounds to 1
-            u = ((x >> jnp.uint32(8)).astype(dtype) + 0.5) / 2.0**24
+        else:  # the top 23 bits: k + 0.5 is exact in float32 for k < 2^23 (for 2^24 − 1 it rounds to 2^24: u = 1)
+            u = ((x >> jnp.uint32(9)).astype(dtype) + 0.5) / 2.0**23
         # Φ⁻¹(u) = √2 erf⁻¹(2u − 1) (2u − 1 is exact), as jax.random.normal.  The barriers give the inverse a
         # kernel of its own: fused with its neighbours, its rounding followed the compiler's fusion, which
         # differs between the first chunk and the others, and the results depended on the chunking.
