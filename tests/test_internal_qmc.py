@@ -52,7 +52,7 @@ def test_the_extreme_points_give_finite_normals_in_either_precision():
         z = []
         for fill in (0, 2**32 - 1):
             shift = jnp.full((1, n_base * m), fill, jnp.uint32)
-            driver = ScrambledSobol(v=v, shift=shift, blocks=jnp.int32(1), n_base=n_base, channels=m)
+            driver = ScrambledSobol(v=v, shift=shift, log_base=jnp.int32(2), channels=m)
             z.append(np.asarray(driver._normals(jnp.int32(0), jnp.uint32(0), lanes, jnp.int32(0), dtype)))
         low, high = z
         assert np.all(np.isfinite(low)) and np.all(np.isfinite(high)), dtype
@@ -63,7 +63,7 @@ def test_the_extreme_points_give_finite_normals_in_either_precision():
 def test_increments_have_the_wiener_law_and_sum_to_the_endpoint():
     n_base, m, blocks = 16, 2, 64  # 4096 paths
     v, shift = stacked_scramblings(jax.random.key(2), 2, n_base * m)  # two scramblings of 2048 points
-    driver = ScrambledSobol(v=v, shift=shift, blocks=jnp.int32(blocks // 2), n_base=n_base, channels=m)
+    driver = ScrambledSobol(v=v, shift=shift, log_base=jnp.int32(4), channels=m)
     dt = jnp.float64(0.05)
 
     def increments(substeps):
@@ -79,12 +79,8 @@ def test_increments_have_the_wiener_law_and_sum_to_the_endpoint():
     # tolerances of independent samples (the Sobol' points do better)
     np.testing.assert_array_less(np.abs(w.mean(0)), 4 * np.sqrt(dt / n))
     np.testing.assert_array_less(np.abs(w.var(0) / dt - 1), 4 * np.sqrt(2 / n))
-    # W(T) from the root of the bridge (replicate b // 32, point block b mod 32): the increments telescope to it
-    lanes, b = jnp.arange(64, dtype=jnp.uint32), jnp.arange(blocks)
-    root = jax.vmap(lambda r, p: driver._interval(r, p, lanes, jnp.int32(0), 0, dt)[2])(
-        b // 32, (b % 32).astype(jnp.uint32)
-    )
-    endpoint = np.asarray(root).reshape(n, m)
+    # W(T), the root of the bridge (one step of all n_base base steps): the increments telescope to it
+    endpoint = increments(n_base)[:, 0]
     np.testing.assert_allclose(w.sum(1), endpoint, rtol=0, atol=1e-13)
     np.testing.assert_array_less(np.abs(endpoint.var(0) / (n_base * dt) - 1), 4 * np.sqrt(2 / n))
     # a step of two base steps is their sum: brownian_dt works on the same path

@@ -66,12 +66,15 @@ from ._fokker_planck import (
     stationary_fokker_planck as stationary_fokker_planck,
 )
 from ._multilevel import MultilevelEstimate as MultilevelEstimate, multilevel_monte_carlo as multilevel_monte_carlo
-from ._multilevel_qmc import multilevel_quasi_monte_carlo as multilevel_quasi_monte_carlo
+from ._multilevel_qmc import (
+    multilevel_quasi_monte_carlo as multilevel_quasi_monte_carlo,
+    quasi_monte_carlo as quasi_monte_carlo,
+)
 from ._normal_approximation import (
     NormalApproximation as NormalApproximation,
     normal_approximation as normal_approximation,
 )
-from ._qmc import QuasiMonteCarloEstimate as QuasiMonteCarloEstimate, quasi_monte_carlo as quasi_monte_carlo
+from ._qmc import QuasiMonteCarloEstimate as QuasiMonteCarloEstimate
 from ._report import AccuracyAlternative as AccuracyAlternative
 from ._sensitivities import Sensitivities as Sensitivities, moment_sensitivities as moment_sensitivities
 from ._stationary import StationaryDensity as StationaryDensity, stationary_density as stationary_density

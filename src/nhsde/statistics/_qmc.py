@@ -12,8 +12,9 @@ dimensions.  A step of ``s = 2^j`` base steps, ``[k s, (k + 1) s]``, is an inter
 the bridge: one walk from the root down through its ``L − j`` ancestors gives both of
 its ends (``L − j + 1`` normals per channel), so the increment over any step is a
 function of ``(scrambling, path, step)`` alone, as the counter-based Wiener driver's,
-and runs are independent of the chunking.  All ``R`` scramblings run as one solve of
-``R·N`` paths, path ``i`` point ``i mod N`` of scrambling ``i // N``.
+and runs are independent of the chunking.  All ``R`` scramblings run as one solve: block ``b``
+of a run is point block ``b // R`` of scrambling ``b mod R`` (:class:`ScrambledSobol`), so
+the points ``N … 2N − 1`` of every scrambling are the contiguous paths ``NR … 2NR − 1``.
 
 Scrambling (Owen 1998; Matoušek 1998): a random linear matrix scramble, per dimension a
 lower-triangular binary matrix with unit diagonal acting on the bits (most significant
@@ -25,11 +26,9 @@ random digital shift ``s``.  Each point is then uniform on the unit cube and the
 
 from __future__ import annotations
 
-import abc
 import dataclasses
 import functools
 import math
-from collections.abc import Sequence
 from typing import ClassVar
 
 import diffrax as dfx
@@ -41,19 +40,14 @@ import numpy as np
 from jaxtyping import Array, Float, Int, PRNGKeyArray, UInt
 
 from .._brownian import BLOCK, AbstractDriver
-from .._ensemble import Save
-from .._misc import check_key, check_number, fold_key
-from .._options import Batching, FixedSteps, run_options
-from .._simulate import MAX_PATH_INDEX, simulate_run
+from .._misc import fold_key
 from .._solvers import SOLVERS, solver_needs
 from .._system import StochasticSystem
 from .._weak import GaussianWeakIncrement
-from ._estimate import AbstractEstimate, AbstractStatistic, Cost, Derivatives, Stopwatch, Values
-from ._paths import array_module, on_device, roles_of, with_tangents
-from ._sensitivities import check_wrt
-from ._variance_reduction import antithetic as reflected
+from ._estimate import AbstractEstimate, AbstractStatistic, Cost, Derivatives, Values
+from ._paths import array_module
 
-__all__ = ["QuasiMonteCarloEstimate", "quasi_monte_carlo", "scrambled_sobol", "sobol_points"]
+__all__ = ["QuasiMonteCarloEstimate", "scrambled_sobol", "sobol_points"]
 
 MAX_DIMENSION = 21201
 """Dimensions of the direction numbers (Joe & Kuo's table in SciPy)."""
@@ -89,15 +83,18 @@ def sobol_points(v: Array, shift: Array, index: Array, dims: Array) -> Array:
     return _xor_at_bits(v[dims], index) ^ shift[dims]
 
 
-class SobolDriver(AbstractDriver):
-    """A Wiener driver from ``R`` scramblings of Sobol' points through a Brownian bridge (module): the scramblings
-    stacked, ``v`` ``(R, d, 32)`` and ``shift`` ``(R, d)``; subclasses place the paths (``_increment``).  Besides
-    Brownian increments it gives :class:`~nhsde.PlatenWeak2`'s Gaussian ones: ``ΔW`` from the points, the
-    two-point ``V`` pseudo-random from the block key, as the Wiener driver draws it."""
+class ScrambledSobol(AbstractDriver):
+    """The Wiener driver of quasi-Monte Carlo and of each level of the multilevel estimator (module): ``R``
+    scramblings of Sobol' points in ``d`` dimensions through a Brownian bridge, stacked, ``v`` ``(R, d, 32)`` and
+    ``shift`` ``(R, d)``; lane ``l`` of block ``b`` is point ``(b // R)·BLOCK + l`` of scrambling ``b mod R``;
+    ``2^log_base`` base steps, as data (one compiled solve for every level and step).  Besides Brownian
+    increments it gives :class:`~nhsde.PlatenWeak2`'s Gaussian ones: ``ΔW`` from the points, the two-point ``V``
+    pseudo-random from the block key, as the Wiener driver draws it."""
 
-    v: eqx.AbstractVar[UInt[Array, "r d 32"]]
-    shift: eqx.AbstractVar[UInt[Array, "r d"]]
-    channels: eqx.AbstractVar[int]
+    v: UInt[Array, "r d 32"]
+    shift: UInt[Array, "r d"]
+    log_base: Int[Array, ""]
+    channels: int = eqx.field(static=True)
     continuous: ClassVar[bool] = True
 
     def variance_rate(self):
@@ -122,9 +119,35 @@ class SobolDriver(AbstractDriver):
         u = jax.lax.optimization_barrier(2.0 * u - 1.0)
         return jax.lax.optimization_barrier(math.sqrt(2.0) * jax.scipy.special.erfinv(u))
 
-    @abc.abstractmethod
-    def _increment(self, block: Array, k0: Array, dt: Array, substeps) -> Array:
-        """``W((k0 + 1)·substeps) − W(k0·substeps)`` of the block's lanes: ``(BLOCK, m)``."""
+    def _increment(self, block, k0, dt, substeps):
+        """``W((k0 + 1)·s) − W(k0·s)`` of the block's lanes, ``(BLOCK, m)``: step ``k0`` of ``s`` base steps (a
+        power of two) is the dyadic interval ``[k0·s, (k0 + 1)·s]`` of the bridge: one walk from the root down
+        through its ``log_base − log₂ s`` ancestors (a loop whose trip count is data) gives both of its ends."""
+        r = self.shift.shape[0]
+        replicate, points = block % r, (block // r).astype(jnp.uint32)
+        lanes = jnp.arange(BLOCK, dtype=jnp.uint32)
+        levels = self.log_base
+        n_base = jnp.left_shift(jnp.int32(1), levels)
+        substeps = jnp.asarray(substeps, jnp.int32)
+        g, depth = k0 * substeps, levels - (jnp.int32(31) - jax.lax.clz(substeps))
+
+        def normals(q):
+            return self._normals(replicate, points, lanes, q, dt.dtype)
+
+        w_lo = jnp.zeros((BLOCK, self.channels), dt.dtype)
+        w_hi = jnp.sqrt(n_base.astype(dt.dtype) * dt) * normals(jnp.zeros((), jnp.int32))
+
+        def ancestor(level, carry):  # the ancestors of g, coarse to fine
+            lo, w_lo, w_hi = carry
+            half = jnp.right_shift(n_base, level)
+            mid = lo + half
+            q = jnp.left_shift(jnp.int32(1), level - 1) + jnp.right_shift(lo, levels - level + 1)
+            w_mid = 0.5 * (w_lo + w_hi) + jnp.sqrt(0.5 * half.astype(dt.dtype) * dt) * normals(q)
+            left = g < mid
+            return jnp.where(left, lo, mid), jnp.where(left, w_lo, w_mid), jnp.where(left, w_mid, w_hi)
+
+        _, w_lo, w_hi = jax.lax.fori_loop(1, depth + 1, ancestor, (jnp.zeros((), jnp.int32), w_lo, w_hi))
+        return w_hi - w_lo
 
     def block_increment(self, key, block, k0, dt, shape, substeps, levy_area):
         if levy_area not in (dfx.BrownianIncrement, GaussianWeakIncrement):
@@ -139,49 +162,6 @@ class SobolDriver(AbstractDriver):
             return w
         # V from the block key; the pseudo-random ΔW it comes with is unused, and compiled away
         return dataclasses.replace(GaussianWeakIncrement.block_draw(key, k0, dt, (BLOCK,) + shape, substeps), W=w)
-
-
-class ScrambledSobol(SobolDriver):
-    """The driver of quasi-Monte Carlo (module): ``R`` scramblings of ``N = blocks·BLOCK`` points each, path ``i``
-    point ``i mod N`` of scrambling ``i // N`` (block ``b`` of scrambling ``b // blocks``); ``n_base`` base steps
-    (a power of two) and ``channels`` fix the dimension."""
-
-    v: UInt[Array, "r d 32"]
-    shift: UInt[Array, "r d"]
-    blocks: Int[Array, ""]
-    n_base: int = eqx.field(static=True)
-    channels: int = eqx.field(static=True)
-
-    def _interval(self, replicate: Array, block: Array, lanes: Array, g: Array, depth: int, dt: Array):
-        """``(lo, W(lo), W(hi))`` of the dyadic interval ``[lo, hi]`` of ``n_base/2^depth`` base steps that holds
-        grid index ``g``, for paths ``block·BLOCK + lanes``: the bridge from its root down through ``depth``
-        ancestors of ``g``, ``depth + 1`` nodes."""
-        levels = self.n_base.bit_length() - 1
-        lo = jnp.zeros((), jnp.int32)
-        w_lo = jnp.zeros((lanes.shape[0], self.channels), dt.dtype)
-        w_hi = math.sqrt(self.n_base) * jnp.sqrt(dt) * self._normals(replicate, block, lanes, lo, dt.dtype)
-        for level in range(1, depth + 1):  # the ancestors of g, coarse to fine
-            half = self.n_base >> level
-            mid = lo + half
-            q = (1 << (level - 1)) + (lo >> (levels - level + 1))
-            z = self._normals(replicate, block, lanes, q, dt.dtype)
-            w_mid = 0.5 * (w_lo + w_hi) + jnp.sqrt(0.5 * half * dt) * z
-            left = g < mid
-            w_lo, w_hi = jnp.where(left, w_lo, w_mid), jnp.where(left, w_mid, w_hi)
-            lo = jnp.where(left, lo, mid)
-        return lo, w_lo, w_hi
-
-    def _increment(self, block, k0, dt, substeps):
-        if not isinstance(substeps, int) or substeps & (substeps - 1) or substeps > self.n_base:
-            raise ValueError(
-                f"substeps={substeps!r}; the bridge's steps are its dyadic intervals: a power of two up to "
-                f"{self.n_base}, as a number."
-            )
-        replicate, points = block // self.blocks, (block % self.blocks).astype(jnp.uint32)
-        depth = (self.n_base // substeps).bit_length() - 1
-        # step k0 is the dyadic interval [k0·s, (k0 + 1)·s]: the walk down to it gives both of its ends
-        _, w_lo, w_hi = self._interval(replicate, points, jnp.arange(BLOCK, dtype=jnp.uint32), k0 * substeps, depth, dt)
-        return w_hi - w_lo
 
 
 @functools.partial(jax.jit, static_argnums=1)
@@ -262,152 +242,3 @@ def combine_replicates(means: Values, seconds: Values):
     dev = means - mean
     spread = xp.einsum("rni,rnj->nij", dev, dev) / (r * (r - 1))
     return mean, xp.mean(seconds, axis=0) - xp.einsum("ni,nj->nij", mean, mean) - spread
-
-
-def _se(per_replicate: Values, axis: int = 0) -> Values:
-    return array_module(per_replicate).std(per_replicate, axis=axis, ddof=1) / math.sqrt(per_replicate.shape[axis])
-
-
-def quasi_monte_carlo(
-    system: StochasticSystem,
-    y0,
-    key,
-    *,
-    n_paths: int,
-    t1: float,
-    dt: float | None = None,
-    steps: FixedSteps | None = None,
-    replicates: int = 16,
-    t0: float = 0.0,
-    solver: str | dfx.AbstractSolver = "euler",
-    save: Save | None = None,
-    antithetic: bool = False,
-    batching: Batching | None = None,
-    wrt: Sequence[str] | None = None,
-) -> QuasiMonteCarloEstimate:
-    """Means and covariances of the saved quantities by randomised quasi-Monte Carlo (module).
-
-    One :func:`~nhsde.simulate` of ``replicates × n_paths`` paths, the system's Wiener driver replaced by
-    ``replicates`` independently scrambled Sobol' point sets (keys ``fold_in(key, r)``) through a Brownian
-    bridge, ``n_paths`` paths each; the per-replicate moments are reduced from the kept paths (on the host in
-    float64 for concrete values).  The same key gives bitwise the same result, whatever the batching.  Every
-    path has the law of a Monte-Carlo path, so the estimate is unbiased for the scheme's expectation at ``dt``:
-    ``mean = avg_r m_r``, ``cov = avg_r S_r − mean meanᵀ − Ĉov(mean)`` with ``S_r`` replicate ``r``'s second
-    moment and ``Ĉov(mean)`` the replicate spread over ``R``.  Paths within a replicate are dependent, so
-    per-path standard errors would be wrong: the errors are the standard deviations over the independent
-    replicates divided by ``√R`` (``R ≥ 8`` gives usable errors).
-
-    The gain needs a statistic smooth in the path ``W`` (moments of a smooth flow are; indicators and
-    maxima gain little), and falls with the dimension ``(t1 − t0)/dt × noise channels``.  Measured against
-    Monte Carlo at the same paths, scheme and step: on the ball (Euler, 16 steps, 4096 paths × 16
-    replicates) the covariances' standard errors 24–49× smaller (variance ÷700–2400) at ~7× the time per
-    path; the host prototype (``benchmarks/qmc.py``, 16384 paths) variance ÷120–3400 on the ball, the sleigh
-    and the body on the vibrating plane, ÷4–7 on Chaplygin's ball.
-
-    Arguments as :func:`~nhsde.simulate` (the step ``dt=h`` or ``steps=FixedSteps(h)``); ``n_paths`` per replicate,
-    a power of two ≥ 64 (the Sobol' points ``0 … n_paths − 1`` form a net); ``(t1 − t0)/dt`` a power of two with
-    ``(t1 − t0)/dt × channels ≤ 21201``; ``solver`` one of :func:`allowed_solvers`: one that needs Brownian
-    increments only (not Lévy area), or ``nhsde.PlatenWeak2(increments='gaussian')`` (weak order 2), whose ``ΔW``
-    come from the points and two-point ``V`` pseudo-random from ``fold_in(key, replicates)``; ``antithetic``: every
-    point also solved with its increments reflected (``W → −W``, the point set ``1 − u``), its value the pair's
-    average and its second moment the average of the two paths' (twice the path-steps; it gains where the statistic
-    has a part odd in ``W``, :mod:`._variance_reduction`); ``wrt``: names of scalar parameters: ``derivatives`` of
-    the moments in them (forward mode), with errors from the replicate spread.
-    """
-    watch = Stopwatch()
-    if not isinstance(system, StochasticSystem):
-        raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
-    wrt = () if wrt is None else check_wrt(system, wrt)
-    if not system.noise.continuous:
-        raise ValueError(
-            f"system.noise={type(system.noise).__name__} has jumps; quasi-Monte Carlo needs a Wiener driver."
-        )
-    check_solver(solver, system)
-    n_paths = check_number("n_paths", n_paths, integer=True)
-    if n_paths < BLOCK or n_paths & (n_paths - 1) or n_paths > MAX_PATH_INDEX:
-        raise ValueError(
-            f"n_paths={n_paths}; quasi-Monte Carlo needs a power of two ≥ {BLOCK} (the Sobol' points of a "
-            f"replicate form a net), at most {MAX_PATH_INDEX + 1 >> 1}."
-        )
-    replicates = check_number("replicates", replicates, integer=True)
-    if replicates < 2:
-        raise ValueError(f"replicates={replicates}; the standard errors need ≥ 2 independent scramblings.")
-    if not isinstance(antithetic, bool):
-        raise TypeError(f"antithetic={antithetic!r}; expected True or False.")
-    if replicates * n_paths > MAX_PATH_INDEX + 1:
-        raise ValueError(
-            f"replicates={replicates}, n_paths={n_paths}: {replicates * n_paths} paths in one run, beyond the "
-            f"{MAX_PATH_INDEX + 1} it indexes; take fewer."
-        )
-    # a point set fixed in advance: no adaptive steps
-    run = run_options(
-        "quasi_monte_carlo", t0=t0, t1=t1, dt=dt, steps=steps, solver=solver, save=save, batching=batching
-    )
-    dt, n_base = run.dt, run.n_steps
-    if n_base & (n_base - 1):
-        raise ValueError(
-            f"dt={dt}: (t1 − t0)/dt = {n_base} base steps; quasi-Monte Carlo needs a power of two such as "
-            f"{1 << (n_base.bit_length() - 1)} or {1 << n_base.bit_length()}."
-        )
-    m = system.noise_dim
-    if n_base * m > MAX_DIMENSION:
-        raise ValueError(
-            f"dt={dt}, t1={t1}: {n_base} steps × {m} channels = {n_base * m} Sobol' dimensions, beyond the "
-            f"{MAX_DIMENSION} of the direction numbers; take a larger dt or a shorter t1 − t0."
-        )
-    key = check_key(key)
-    save = Save() if run.save is None else run.save
-    names = system.layout.names if save.names is None else save.names
-
-    v, shift = stacked_scramblings(key, replicates, n_base * m)  # independent scramblings
-    blocks = jax.device_put(np.asarray(n_paths // BLOCK, np.int32))
-    driven = eqx.tree_at(
-        lambda s: s.noise, system, ScrambledSobol(v=v, shift=shift, blocks=blocks, n_base=n_base, channels=m)
-    )
-    run = dataclasses.replace(run, save=dataclasses.replace(save, paths=True))
-    paths_key = fold_key(key, replicates)  # the pseudo-random parts (PlatenWeak2's V): no scrambling's key
-
-    def moments(s):
-        """Per-replicate means ``(R, n, k)`` and second moments ``(R, n, k, k)`` of one run of all the paths (and
-        of their reflections: the averages over both)."""
-        zs = []
-        for solved in (s, reflected(s)) if antithetic else (s,):
-            ens = simulate_run(solved, y0, paths_key, run, n_paths=replicates * n_paths)
-            assert ens.paths is not None
-            xp = array_module(ens.paths)  # concrete: on the host in float64, no program per shape
-            z = np.asarray(ens.paths, np.float64) if xp is np else ens.paths
-            zs.append(z.reshape(replicates, n_paths, -1, len(names)))
-        z = xp.stack(zs)  # (1 or 2, R, n_paths, n, k)
-        mean = xp.mean(z, axis=(0, 2))
-        f = z - mean[None, :, None]
-        second = xp.einsum("arpni,arpnj->rnij", f, f) / (len(zs) * n_paths)
-        return ens.ts, mean, second + xp.einsum("rni,rnj->rnij", mean, mean)
-
-    (ts, means, seconds), tangents = with_tangents(moments, driven, wrt)
-    xp = array_module(means, seconds)
-    mean, cov = combine_replicates(means, seconds)
-    per_cov = seconds - xp.einsum("rni,rnj->rnij", means, means)
-    derivatives = None
-    if tangents is not None:
-        d_means, d_seconds = tangents[1], tangents[2]  # (p, R, n, k), (p, R, n, k, k)
-        d_mean, d_cov = jax.vmap(lambda dm, ds: jax.jvp(combine_replicates, (means, seconds), (dm, ds))[1])(
-            d_means, d_seconds
-        )
-        d_outer = jnp.einsum("prni,rnj->prnij", d_means, means)
-        d_per_cov = d_seconds - d_outer - jnp.swapaxes(d_outer, -1, -2)
-        derivatives = Derivatives(d_mean, d_cov, _se(d_means, 1), _se(d_per_cov, 1), wrt)
-    estimate = QuasiMonteCarloEstimate(
-        ts=ts,
-        mean=mean,
-        cov=cov,
-        mean_se=_se(means),
-        cov_se=_se(per_cov),
-        n_paths=jax.device_put(np.asarray(replicates * n_paths)),
-        names=names,
-        roles=roles_of(system, names),
-        replicates=replicates,
-        derivatives=derivatives,
-        cost=watch.cost((2 if antithetic else 1) * replicates * n_paths * n_base),
-        statistic=None,
-    )
-    return on_device(estimate, ts.dtype)
