@@ -18,7 +18,8 @@ One compiled solve serves every level, point count and scrambling: the ``R`` scr
 (block ``b`` of the run is point block ``b // R`` of scrambling ``b mod R``, so the points ``N … 2N − 1`` of
 every scrambling are the contiguous paths ``NR … 2NR − 1``), its direction numbers padded to the dimension of
 the finest level allowed, and the bridge depth ``log₂ n_ℓ`` is data.  Per-point values are reduced on the host
-into per-scrambling sums, so memory does not grow with ``N_ℓ``.
+into per-scrambling sums, so memory does not grow with ``N_ℓ``.  Plain randomised quasi-Monte Carlo,
+:func:`quasi_monte_carlo`, is the one level ``ℓ = 0`` at ``dt``.
 """
 
 from __future__ import annotations
