@@ -162,7 +162,7 @@ def test_a_summary_dataset_carries_its_covariance(data_sets):
     read = fit.Observations.from_xarray(ds)
     assert read.correlations == "given"
     np.testing.assert_allclose(read.covariance, observed.covariance, rtol=1e-12)
-    with pytest.raises(ValueError, match="holds the statistics' covariance of all of \('x', 'u_x'\)"):
+    with pytest.raises(ValueError, match=r"holds the statistics' covariance of all of \('x', 'u_x'\)"):
         fit.Observations.from_xarray(ds, names=("x",))
 
 
