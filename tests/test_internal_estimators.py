@@ -12,7 +12,7 @@ import nhsde
 from nhsde._options import RunOptions
 from nhsde.scenes import BallOnVibratingPlane, ChaplyginBall
 from nhsde.statistics import _paths
-from nhsde.statistics._cost import best_single, multilevel_plan
+from nhsde.statistics._cost import best_single, level_cost, multilevel_plan
 
 BALL = BallOnVibratingPlane(eps=1.0, nu=1.0)
 Y0 = jnp.zeros(4)
@@ -21,8 +21,8 @@ Y0 = jnp.zeros(4)
 @pytest.mark.parametrize("h0", [0.25, 2.5])
 def test_the_bias_model_carries_the_coarsest_step(h0):
     """The bias of a plan at ``h = h₀ 2^{−k}`` is ``bound·h^p`` in time units (``h₀^p`` included), the samples
-    keep ``V/N + bias² ≤ ε²``, and one step coarser would miss the target or cost more; the multilevel plan stops
-    at the first ``L`` with ``bound·h_L^p ≤ ε/√2``."""
+    keep ``V/N + bias² ≤ ε²``, and one step coarser would miss the target or cost more; so do the multilevel
+    plan's samples with its finest level's bias."""
     variance, bound, eps, steps0 = 2.0, 0.3, 0.05, 4
     for order in (1, 2):
         cost, k, n, bias = best_single(variance, bound, order, eps, h0, steps0, 1.0)
@@ -30,10 +30,31 @@ def test_the_bias_model_carries_the_coarsest_step(h0):
         assert bias == bound * h**order and variance / n + bias**2 <= eps**2
         coarser = best_single(variance, bound, order, eps, 2 * h, steps0 // 2 or 1, 1.0)
         assert coarser[1] != 0 or coarser[0] >= cost
-        _, counts, _, levels = multilevel_plan([1.0, 0.1, 0.02], bound, order, eps, steps0, h0, False, 1024)
-        finest = h0 / 2 ** (levels - 1)
-        assert len(counts) == levels >= 3 and bound * finest**order <= eps / math.sqrt(2)
-        assert levels == 3 or bound * (2 * finest) ** order > eps / math.sqrt(2)
+        v = [1.0, 0.1, 0.02]
+        _, counts, _, levels = multilevel_plan(v, bound, order, eps, steps0, h0, False, 1024)
+        v += [v[-1] * (v[-1] / v[-2]) ** (ell - 2) for ell in range(3, levels)]  # the pilot's decay beyond it
+        finest_bias = bound * (h0 / 2 ** (levels - 1)) ** order
+        assert len(counts) == levels >= 3
+        assert sum(a / n for a, n in zip(v, counts)) + finest_bias**2 <= eps**2
+
+
+@pytest.mark.parametrize(("bound", "order", "eps"), [(2.0, 1, 0.01), (1.0, 2, 0.002)])
+def test_the_multilevel_plan_splits_the_error_where_it_costs_least(bound, order, eps):
+    """Giles (2015) §2.3: with levels to ``h_L`` the least work for a mean square error ``ε²`` is
+    ``(Σ_ℓ √(V_ℓ C_ℓ))² / (ε² − b_L²)``, ``b_L = bound·h_L^p``.  The plan chooses its number of levels by that
+    (whole pieces included), so it costs at least 30 % less here than the rule ``b_L ≤ ε/√2`` with half of ``ε²``
+    left to the variance (the first ``L`` meeting it, work ``2 (Σ √(V_ℓ C_ℓ))²/ε²`` before rounding), and its
+    whole-piece counts keep ``Σ V_ℓ/N_ℓ + b_L² ≤ ε²``."""
+    v, steps0, h0 = [1.0, 0.25, 0.0625], 4, 0.25
+    cost, counts, _, levels = multilevel_plan(v, bound, order, eps, steps0, h0, False, 1024)
+    v += [v[-1] * 4.0 ** -(ell - 2) for ell in range(3, 13)]  # the pilot's decay, 2^-2 per level, beyond it
+    costs = [level_cost(steps0, ell, False) for ell in range(13)]
+    finest_bias = bound * (h0 / 2 ** (levels - 1)) ** order
+    assert sum(a / n for a, n in zip(v, counts)) + finest_bias**2 <= eps**2
+    half = next(n for n in range(3, 13) if bound * (h0 / 2 ** (n - 1)) ** order <= eps / math.sqrt(2))
+    half_split = 2 * sum(math.sqrt(a * c) for a, c in zip(v[:half], costs[:half])) ** 2 / eps**2
+    assert cost < 0.7 * half_split
+    assert levels != half
 
 
 def test_runs_beyond_the_paths_of_one_key_draw_from_further_keys(monkeypatch):

@@ -8,8 +8,10 @@ with ``h`` in time units, so ``h₀^p`` is part of it (Talay & Tubaro 1990).  A 
 per-sample variance ``V`` reaches a root-mean-square error ``ε`` with ``N = V/(ε² − (bias_bound h^p)²)`` samples
 (Glasserman 2004, §1.1.3), at ``N (t1 − t0)/h`` path-steps times its cost factor.  A multilevel level ``ℓ``
 costs ``C_ℓ = s₀ 2^ℓ + s₀ 2^{ℓ−1}`` path-steps per sample (the fine and the coarse solve, ``s₀`` the coarsest
-step count; twice that with antithetic pairs) and takes ``N_ℓ = 2 ε⁻² √(V_ℓ/C_ℓ) Σ_k √(V_k C_k)`` samples
-(Giles 2008, §2), run in pieces of ``piece_paths 2^{−ℓ}`` paths (at least one block).
+step count; twice that with antithetic pairs) and takes ``N_ℓ = σ²⁻¹ √(V_ℓ/C_ℓ) Σ_k √(V_k C_k)`` samples for a
+variance ``Σ V_ℓ/N_ℓ = σ²`` (Giles 2008, §2), run in pieces of ``piece_paths 2^{−ℓ}`` paths (at least one
+block).  A plan splits ``ε²`` between the squared bias bound and the variance: ``σ² = ε² − (bias_bound h^p)²``,
+the number of levels (or the step) chosen where that costs least (Giles 2015, §2.3; Haji-Ali et al. 2016).
 
 Memory.  The paired estimators keep per-path values: ``n_save × k`` numbers per path and solve (and per
 parameter of ``wrt``); a plan whose values, with the copies its statistics make, would not fit in the device's
@@ -116,10 +118,10 @@ def level_piece(piece: int, level: int) -> int:
     return max(BLOCK, (piece >> level) // BLOCK * BLOCK)
 
 
-def allocate(variances: Sequence[float], costs: Sequence[float], rmse: float) -> list[float]:
-    """``N_ℓ = 2 ε⁻² √(V_ℓ/C_ℓ) Σ_k √(V_k C_k)`` (module)."""
+def allocate(variances: Sequence[float], costs: Sequence[float], budget: float) -> list[float]:
+    """``N_ℓ = σ²⁻¹ √(V_ℓ/C_ℓ) Σ_k √(V_k C_k)``: the least work with ``Σ V_ℓ/N_ℓ = σ²``, ``budget = σ²`` (module)."""
     total = sum(math.sqrt(v * c) for v, c in zip(variances, costs, strict=True))
-    return [2.0 / rmse / rmse * math.sqrt(v / c) * total for v, c in zip(variances, costs, strict=True)]
+    return [math.sqrt(v / c) * total / budget for v, c in zip(variances, costs, strict=True)]
 
 
 def multilevel_plan(
@@ -136,33 +138,36 @@ def multilevel_plan(
 ) -> tuple[float, tuple[int, ...], int, int]:
     """``(cost, N_ℓ, piece_paths, L + 1)`` predicted for ``multilevel_monte_carlo``, pieces included.
 
-    Levels until ``bias_bound h_L^p ≤ ε/√2``; ``V_ℓ`` beyond the pilot's decay at its finest rate ``2^{−β}``,
-    ``1 ≤ β ≤ 2``.  Pieces of ``base·4^k`` paths on level 0 (``base`` the pilot's paths), at least ``N_0/16``:
-    targets close to one another share the compiled programs of each level; ``control``: each sample also solves
-    the linearised system (``level_cost``)."""
+    The cheapest number of levels ``L + 1 ≥ 3`` whose bias bound ``b_L = bias_bound h_L^p`` is below ``ε``, with the
+    variance ``ε² − b_L²`` left to the samples (module): a bias well under ``ε`` leaves nearly all of ``ε²`` to the
+    variance, where a fixed ``b_L ≤ ε/√2`` would halve it.  ``V_ℓ`` beyond the pilot's decay at its finest rate
+    ``2^{−β}``, ``1 ≤ β ≤ 2``.  Pieces of ``base·4^k`` paths on level 0 (``base`` the pilot's paths), at least
+    ``N_0/16``: targets close to one another share the compiled programs of each level; ``control``: each sample
+    also solves the linearised system (``level_cost``)."""
     v = [max(x, 1e-300) for x in levels_v]
     if not all(math.isfinite(x) for x in v) or not math.isfinite(bound):
         return math.inf, (), 0, 0
     beta = min(max(math.log2(v[-2] / v[-1]), 1.0), 2.0) if len(v) >= 3 else 1.0
-    n_levels = 3
-    while not bias(bound, h0 / 2 ** (n_levels - 1), order) <= eps / math.sqrt(2):
-        n_levels += 1
-        if n_levels > max_levels:
-            return math.inf, (), 0, 0
-    while len(v) < n_levels:
+    while len(v) < max_levels:
         v.append(v[-1] * 2**-beta)
-    v = v[:n_levels]
-    costs = [level_cost(steps0, ell, anti, control) for ell in range(n_levels)]
-    optimal = allocate(v, costs, eps)
-    if not all(o < 2.0**62 for o in optimal):
-        return math.inf, (), 0, 0
-    piece = min(2**16, base * 4 ** max(0, math.floor(math.log(max(optimal[0], 1) / (16 * base), 4)) + 1))
-    piece = base if optimal[0] < 16 * base else piece
-    counts = []
-    for ell, o in enumerate(optimal):
-        size = level_piece(piece, ell)
-        counts.append(size * max(1, math.ceil(o / size)))
-    return float(sum(n * c for n, c in zip(counts, costs))), tuple(counts), piece, n_levels
+    best: tuple[float, tuple[int, ...], int, int] = (math.inf, (), 0, 0)
+    for n_levels in range(3, max_levels + 1):
+        b = bias(bound, h0 / 2 ** (n_levels - 1), order)
+        if not b < eps:
+            continue
+        costs = [level_cost(steps0, ell, anti, control) for ell in range(n_levels)]
+        optimal = allocate(v[:n_levels], costs, (eps - b) * (eps + b))
+        if not all(o < 2.0**62 for o in optimal):
+            continue
+        piece = min(2**16, base * 4 ** max(0, math.floor(math.log(max(optimal[0], 1) / (16 * base), 4)) + 1))
+        piece = base if optimal[0] < 16 * base else piece
+        counts = tuple(
+            level_piece(piece, ell) * max(1, math.ceil(o / level_piece(piece, ell))) for ell, o in enumerate(optimal)
+        )
+        cost = float(sum(n * c for n, c in zip(counts, costs)))
+        if cost < best[0]:
+            best = (cost, counts, piece, n_levels)
+    return best
 
 
 def memory_limit() -> int:

@@ -333,8 +333,9 @@ class Richardson(AbstractEstimator):
 
 @dataclasses.dataclass(frozen=True)
 class Multilevel(AbstractEstimator):
-    """Multilevel Monte Carlo (:func:`~nhsde.statistics.multilevel_monte_carlo`, Giles 2008): levels until
-    ``|C| h_L^p ≤ ε/√2``, ``V_ℓ`` beyond the pilot decaying at its rate, ``N_ℓ ∝ √(V_ℓ/C_ℓ)``, in whole pieces; run
+    """Multilevel Monte Carlo (:func:`~nhsde.statistics.multilevel_monte_carlo`, Giles 2008): the number of levels
+    whose bias bound ``b = |C| h_L^p < ε`` costs least with the variance ``ε² − b²`` (:func:`._cost.multilevel_plan`),
+    ``V_ℓ`` beyond the pilot decaying at its rate, ``N_ℓ ∝ √(V_ℓ/C_ℓ)``, in whole pieces; run
     with that allocation fixed (an allocation adapted from its own samples stops early on low variance estimates,
     biasing a covariance low).  ``control``: every level also solves the linearised system as a control variate
     (``control='mean'``), priced from the controlled pilot (:class:`ControlPilot`)."""
@@ -742,7 +743,7 @@ class MultilevelQuasiMonteCarlo(_AbstractQuasiMonteCarlo):
             costs = [self.copies * level_cost(pricing.steps0, ell, False) for ell in range(top + 1)]
             expected = [_power_of_two(n) for n in _allocate_at_rates(levels, costs, budget)]
             mc = [a * (2 * pilot.n_q) ** -beta * 2 * pilot.n_q for a, beta in levels]  # per point, the MC rate
-            most = [max(e, _power_of_two(n)) for e, n in zip(expected, allocate(mc, costs, math.sqrt(2 * budget)))]
+            most = [max(e, _power_of_two(n)) for e, n in zip(expected, allocate(mc, costs, budget))]
             cost = QMC_REPLICATES * sum(n * c for n, c in zip(expected, costs)) * pilot.kappa
             if cost < best[0] and max(most) <= KEY_PATHS // QMC_REPLICATES:
                 best = (cost, tuple(expected), tuple(most), top)

@@ -404,7 +404,7 @@ def _adapt(levels: _Levels, eps: float, alpha: float, max_levels: int, statistic
         counts = [levels.count(level) for level in range(n_levels)]
         variances = [max(float(statistic.pick(names, m[2], m[3])) * n, 1e-300) for m, n in zip(moments, counts)]
         costs = [levels.cost(level) for level in range(n_levels)]
-        optimal = allocate(variances, costs, eps)
+        optimal = allocate(variances, costs, eps * eps / 2)  # a product: 1e300² is inf, not an error
         if not all(o < 2.0**62 for o in optimal):
             raise ValueError(
                 f"rmse={eps:.3g}: the level variances {variances} need more than 2^62 samples; raise rmse."
