@@ -18,10 +18,10 @@ differences.  For a target RMSE ``ε`` it predicts the work (path-steps) of
   (Glasserman 2004, §1.1.3, the bias–variance split);
 - Richardson–Romberg extrapolation (:func:`extrapolate`) at its best ``(h, N)``,
   residual bias ``C' h^{p+1}`` from the difference of two extrapolations, work ``3 N T/h``;
-- multilevel Monte Carlo (:func:`multilevel_monte_carlo`): levels until
-  ``|C| h_L^p ≤ ε/√2``, ``V_ℓ`` beyond the pilot decaying at the pilot's rate
-  ``2^{−β}``, work ``2ε⁻² (Σ_ℓ √(V_ℓ C_ℓ))²`` (Giles 2008) with samples rounded to whole pieces
-  (run with this allocation fixed);
+- multilevel Monte Carlo (:func:`multilevel_monte_carlo`): the number of levels to ``h_L`` that costs least,
+  its bias bound ``b_L = |C| h_L^p < ε`` leaving the variance ``ε² − b_L²`` to the samples, ``V_ℓ`` beyond the
+  pilot decaying at the pilot's rate ``2^{−β}``, work ``(Σ_ℓ √(V_ℓ C_ℓ))²/(ε² − b_L²)`` (Giles 2008; 2015,
+  §2.3) with samples rounded to whole pieces (run with this allocation fixed);
 - each of these with antithetic pairs (work doubled, the pair's variance);
 - a control variate, where :mod:`nhsde.statistics` provides one;
 - randomised quasi-Monte Carlo (:func:`quasi_monte_carlo`, with each solver, 16 scramblings of a power of two
