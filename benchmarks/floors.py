@@ -62,7 +62,8 @@ PROBE_PATHS = 65536
 RUN_PATHS = 8192  # the estimators' large runs (statistics._paths.LARGE_RUN_PATHS)
 
 
-def solve(case, solver, dt, n_paths, key=1, paths=False, on_failure="raise"):
+def solve(case, solver, dt, n_paths, key=1, paths=False):
+    """``n_paths`` of the case at ``dt`` with the base step as data, as the estimators solve (``paths``: kept)."""
     save = nhsde.Save(names=("energy",), n=2, paths=paths)
     return nhsde.simulate(
         case["system"],
@@ -73,7 +74,6 @@ def solve(case, solver, dt, n_paths, key=1, paths=False, on_failure="raise"):
         solver=solver,
         save=save,
         steps=nhsde.FixedSteps(dt, brownian_dt=dt),
-        on_failure=on_failure,
     )
 
 
