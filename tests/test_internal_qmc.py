@@ -8,6 +8,7 @@ import numpy as np
 from scipy.stats import qmc
 
 from nhsde.statistics._qmc import (
+    MAX_DIMENSION,
     ScrambledSobol,
     _direction_numbers,
     scrambled_sobol,
@@ -24,6 +25,15 @@ def test_unscrambled_points_are_scipys():
     x = sobol_points(v, jnp.zeros(d, jnp.uint32), jnp.asarray(i ^ (i >> 1), jnp.uint32), jnp.arange(d))
     reference = qmc.Sobol(d, scramble=False, bits=32).random(n) * 2.0**32
     np.testing.assert_array_equal(np.asarray(x, np.float64), reference)
+
+
+def test_direction_numbers_are_scipys_in_every_dimension():
+    """Joe & Kuo's recurrence over SciPy's table, without importing ``scipy.stats``: every one of the 21201
+    dimensions' 32 direction numbers equals SciPy's own, and a prefix of them is the same table's prefix."""
+    v = _direction_numbers(MAX_DIMENSION)
+    reference = np.asarray(qmc.Sobol(MAX_DIMENSION, scramble=False, bits=32)._sv, np.uint32)
+    np.testing.assert_array_equal(v, reference)
+    np.testing.assert_array_equal(_direction_numbers(3), reference[:3])
 
 
 def test_scrambled_points_stratify_every_dimension():

@@ -75,9 +75,12 @@ from ._variance_reduction import check_reflectable
 
 __all__ = ["AccuracyAlternative", "AccuracyResult", "default_estimators", "to_accuracy"]
 
-EXPLORE_ABOVE = 64
+EXPLORE_ABOVE = 256
 """A further pilot runs (by default) only when the best run so far is predicted to take more than this many times
-the first pilot's path-steps: below, compiling and running another pilot costs more than it can save."""
+the first pilot's path-steps: below, compiling another pilot costs more than it can save.  Measured
+(``benchmarks/RESULTS.md``): the default set's further pilots compiled for 16 s on Chaplygin's ball at 1e-3, while
+a run of 256 first pilots' path-steps (the ball's 4.6e5) takes about 30 s there, so an alternative found must
+halve the best run to repay it."""
 
 MAX_PILOT_HALVINGS = 10
 """The default coarsest step is halved while the pilot's paths fail, down to ``(t1 − t0)/2^10``."""

@@ -181,12 +181,14 @@ run's surplus, the next paths of the same key, is dropped), so one compiled prog
 
 LARGE_RUN_PATHS = 8192
 """Paths per call of the estimators' large counts, from :data:`LARGE_RUNS_FROM` paths on: a second program whose
-calls carry 8× the paths of a small run, where each small call's dispatch costs as much as its paths (about 3 ms
-against 1024 paths × 8 steps) and its chunk of 1024 lanes runs at half the speed per path-step of 8192."""
+calls carry 8× the paths of a small run, each small call costing its dispatch (about 3 ms) besides its paths."""
 
-LARGE_RUNS_FROM = 2**17
+LARGE_RUNS_FROM = 2**21
 """Counts from which whole large runs are used (the rest in small runs): below, the large program's compilation
-(about a second) costs more than it saves (per path about 2.6 µs of dispatch and 50 ns per step)."""
+(2–4 s) costs more than it saves.  Measured (``benchmarks/RESULTS.md``): ``to_accuracy``'s multilevel level 0 of
+2²⁰ paths × 32 steps on Chaplygin's ball ran 1.3 s faster in large runs (20.4 s against 21.7 s warm) after
+compiling for 3.8 s; 229376 paths × 4 steps on the body on the vibrating plane, no faster (2.96 s against
+2.87 s) after 2.5 s."""
 
 
 def runs(n_paths: int) -> list[int]:

@@ -21,14 +21,16 @@ lower-triangular binary matrix with unit diagonal acting on the bits (most signi
 first) of the direction numbers ``V`` (the scramble is linear, so ``V' = M V``), and a
 random digital shift ``s``.  Each point is then uniform on the unit cube and the first
 ``2^k`` points keep the net property of the sequence.  Direction numbers: Joe & Kuo
-(2008) as shipped by ``scipy.stats.qmc.Sobol`` (at most 21201 dimensions).
+(2008), the table SciPy ships for ``scipy.stats.qmc.Sobol``, read from its file (at most 21201 dimensions).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import importlib.util
 import math
+import pathlib
 from typing import ClassVar
 
 import diffrax as dfx
@@ -58,10 +60,35 @@ LANE_BITS = BLOCK.bit_length() - 1
 
 @functools.lru_cache(maxsize=8)
 def _direction_numbers(d: int) -> np.ndarray:
-    """Unscrambled direction numbers ``(d, 32)`` ``uint32``, column ``b`` for bit ``b`` of the point index."""
-    from scipy.stats import qmc
-
-    v = np.array(qmc.Sobol(d, scramble=False, bits=BITS)._sv, dtype=np.uint32)
+    """Unscrambled direction numbers ``(d, 32)`` ``uint32``, column ``b`` for bit ``b`` of the point index (Joe & Kuo
+    2008, §2): dimension ``j`` of primitive polynomial ``x^s + a_1 x^{s−1} + … + a_{s−1} x + 1`` (``poly``, its
+    leading and trailing ones included) and initial numbers ``m_1 … m_s`` (``vinit``) has ``V_b = m_{b+1} 2^{31−b}``
+    for ``b < s``, then ``V_b = V_{b−s} ⊕ (V_{b−s} ≫ s) ⊕ a_1 V_{b−1} ⊕ … ⊕ a_{s−1} V_{b−s+1}``; dimension 0 is
+    ``V_b = 2^{31−b}``.  The table is read from SciPy's file without importing ``scipy.stats`` (0.5–0.6 s)."""
+    spec = importlib.util.find_spec("scipy")
+    assert spec is not None and spec.submodule_search_locations
+    with np.load(pathlib.Path(spec.submodule_search_locations[0], "stats", "_sobol_direction_numbers.npz")) as table:
+        poly, vinit = table["poly"][:d].astype(np.uint64), table["vinit"][:d].astype(np.uint64)
+    shifts = np.uint64(BITS - 1) - np.arange(BITS, dtype=np.uint64)
+    v = np.zeros((d, BITS), np.uint64)
+    v[0] = np.uint64(1) << shifts
+    degree = np.array([int(x).bit_length() - 1 for x in poly])
+    for s in range(1, int(degree.max(initial=0)) + 1):
+        rows = np.flatnonzero(degree == s)
+        rows = rows[rows > 0]
+        if not rows.size:
+            continue
+        p = poly[rows]
+        w = v[rows]
+        w[:, :s] = vinit[rows, :s] << shifts[:s]
+        for b in range(s, BITS):
+            new = w[:, b - s] ^ (w[:, b - s] >> np.uint64(s))
+            for k in range(1, s):
+                a_k = (p >> np.uint64(s - k)) & np.uint64(1)
+                new ^= a_k * w[:, b - k]
+            w[:, b] = new
+        v[rows] = w
+    v = v.astype(np.uint32)
     v.flags.writeable = False
     return v
 
