@@ -27,6 +27,16 @@ vibrating plane; the statistic E[H](t1), float64) and each relative RMSE ε, in 
 Then the ratios the issue's targets ask for: plain / floor, warm and first.  A target above these ratios cannot be met
 by any estimator the project has, however it is engineered.
 
+7. The **multilevel floor**, the bias included.  The floors above grant an estimator no bias at ``h₀``; where the
+   solver's bias there exceeds ε, the corrections to a finer step cost more.  On 65536 paths per level, coupled as
+   the multilevel estimators couple them (both solves on one Brownian path of the finer step), the mean and
+   variance ``V_ℓ`` of ``Y_ℓ = S(h_ℓ) − S(h_{ℓ−1})`` at ``h_ℓ = h₀ 2^{−ℓ}``, ``ℓ ≤ 5``; a lower bound on the bias
+   ``b_L ≥ |Σ_{ℓ>L} Ŷ_ℓ| − 2 SE``; and the least warm seconds of a multilevel estimator with oracle knowledge of
+   the ``V_ℓ``, no pilot and no rounding, over its first and finest levels (``multilevel_floor``): plain Monte Carlo
+   at any ``h_k`` is the one-level case.  QMC's gain per second is granted to every level, and, as multilevel QMC
+   measured (its finer levels at the Monte-Carlo rate), to the first level only.  A multilevel, plain or QMC
+   estimator on these solvers cannot be faster than this.
+
 And the persistent compilation cache (unless ``--no-cache``): the README's main job run in fresh processes with the
 cache cold and warm, and the floor of a warm-cache process, ``import nhsde`` (measured in a fresh process) plus the
 job run a second time in one process (nothing left to compile or trace).
@@ -46,6 +56,7 @@ import tempfile
 import time
 
 import jax
+import numpy as np
 
 jax.config.update("jax_enable_x64", True)
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
@@ -60,10 +71,13 @@ SCENES = ("sleigh", "chaplygin-ball", "body")
 FIRST_SOLVER = {"sleigh": bench.GAUSS, "chaplygin-ball": bench.GAUSS, "body": "heun2"}  # to_accuracy's first pilot
 PROBE_PATHS = 65536
 RUN_PATHS = 8192  # the estimators' large runs (statistics._paths.LARGE_RUN_PATHS)
+ML_LEVELS = 6  # coupled levels h0 … h0/32 measured for the multilevel floor
+ML_PATHS = 65536
 
 
-def solve(case, solver, dt, n_paths, key=1, paths=False):
-    """``n_paths`` of the case at ``dt`` with the base step as data, as the estimators solve (``paths``: kept)."""
+def solve(case, solver, dt, n_paths, key=1, paths=False, brownian_dt=None):
+    """``n_paths`` of the case at ``dt`` with the base step as data, as the estimators solve (``paths``: kept), on
+    the Brownian path of step ``brownian_dt`` (default ``dt``; a finer one couples solves at several steps)."""
     save = nhsde.Save(names=("energy",), n=2, paths=paths)
     return nhsde.simulate(
         case["system"],
@@ -73,7 +87,7 @@ def solve(case, solver, dt, n_paths, key=1, paths=False):
         t1=case["t1"],
         solver=solver,
         save=save,
-        steps=nhsde.FixedSteps(dt, brownian_dt=dt),
+        steps=nhsde.FixedSteps(dt, brownian_dt=dt if brownian_dt is None else brownian_dt),
     )
 
 
@@ -128,6 +142,8 @@ def scene_floors(scene, rels, compiled):
     var_mc = float(mc.cov[-1, 0, 0]) / n_qmc
     qmc_gain = (var_mc / var_qmc) / (q_warm / mc_warm)
     best_gain = max(1.0, qmc_gain)
+    levels = coupled_levels(case, solver, h0)
+    biases = bias_lower_bounds(levels)
     rows = []
     for rel in rels:
         eps = rel * abs(exact)
@@ -140,6 +156,8 @@ def scene_floors(scene, rels, compiled):
         plain_warm = p_warm * p_paths / PROBE_PATHS
         compiled.setdefault((scene, str(p_solver)), p_first - p_warm)
         plain_first = plain_warm + compiled[(scene, str(p_solver))]
+        ml_all = multilevel_floor(levels, biases, eps, steps0, rate, best_gain, best_gain)
+        ml_first = multilevel_floor(levels, biases, eps, steps0, rate, 1.0, best_gain)
         row = dict(
             scene=scene,
             rel=rel,
@@ -160,10 +178,67 @@ def scene_floors(scene, rels, compiled):
             plain=dict(solver=str(p_solver), dt=p_dt, n_paths=p_paths, work=p_paths * round(case["t1"] / p_dt)),
             plain_warm=plain_warm,
             plain_first=plain_first,
+            levels=levels,
+            bias_lower_bounds=biases,
+            ml_floor_warm=ml_all[0],
+            ml_floor_levels=ml_all[1:],
+            ml_floor_warm_qmc_first_level=ml_first[0],
+            ml_floor_first=ml_all[0] + compile_s,
         )
         rows.append(row)
         print(json.dumps(row), flush=True)
     return rows
+
+
+def coupled_levels(case, solver, h0, levels=ML_LEVELS, n_paths=ML_PATHS):
+    """Per level ``ℓ < levels`` at ``h_ℓ = h₀ 2^{−ℓ}``: the mean and variance of ``Y_ℓ = S(h_ℓ) − S(h_{ℓ−1})`` (both
+    solves on one Brownian path of step ``h_ℓ``, as the multilevel estimators couple them; ``Y_0 = S(h₀)``) and the
+    standard error of the mean, from ``n_paths`` paths."""
+    out = []
+    for ell in range(levels):
+        fine = h0 / 2**ell
+
+        def final(dt, fine=fine, ell=ell):
+            ens = solve(case, solver, dt, n_paths, key=7 + ell, paths=True, brownian_dt=fine)
+            return np.asarray(ens.paths[:, -1, 0], np.float64)
+
+        y = final(fine) - (final(2 * fine) if ell else 0.0)
+        out.append(
+            dict(h=fine, mean=float(y.mean()), se=float(y.std(ddof=1) / math.sqrt(n_paths)), var=float(y.var(ddof=1)))
+        )
+    return out
+
+
+def bias_lower_bounds(levels):
+    """``b_L ≥ max(0, |Σ_{ℓ>L} Ŷ_ℓ| − 2 SE)``: a lower bound (at about 98 %) on ``|E S(h_L) − S|`` from the measured
+    level means, the bias left at the finest measured step neglected (weak order ≥ 1: at most 1/32 of ``b_0``)."""
+    out = []
+    for top in range(len(levels)):
+        rest = levels[top + 1 :]
+        total = sum(lv["mean"] for lv in rest)
+        se = math.sqrt(sum(lv["se"] ** 2 for lv in rest))
+        out.append(max(0.0, abs(total) - 2 * se))
+    return out
+
+
+def multilevel_floor(levels, biases, eps, steps0, rate, gain_all, gain_first):
+    """The least warm seconds of a multilevel estimator on these levels with oracle knowledge (the true level
+    variances, no pilot, no rounding, no bias to certify beyond its lower bound): over the first level ``k`` and the
+    finest ``L`` with ``b_L < ε``, ``(Σ_{ℓ=k}^{L} √(V_ℓ C_ℓ r / g_ℓ))² / (ε² − b_L²)`` (Giles 2008, §2), ``C_ℓ`` the
+    path-steps per sample (``1.5 s₀ 2^ℓ`` for a coupled pair, ``s₀ 2^k`` for the first level, whose variance is
+    ``V_0``'s), ``r`` seconds per path-step, ``g_k = gain_first`` and ``g_ℓ = gain_all`` beyond.  ``k = L`` is plain
+    Monte Carlo (or QMC) at ``h_k``."""
+    best = (math.inf, -1, -1)
+    for k in range(len(levels)):
+        for top in range(k, len(levels)):
+            b = biases[top]
+            if not b < eps:
+                continue
+            terms = [levels[0]["var"] * steps0 * 2**k * rate / gain_first]
+            terms += [levels[ell]["var"] * 1.5 * steps0 * 2**ell * rate / gain_all for ell in range(k + 1, top + 1)]
+            seconds = sum(math.sqrt(t) for t in terms) ** 2 / ((eps - b) * (eps + b))
+            best = min(best, (seconds, k, top))
+    return best
 
 
 def cache_floor():
@@ -224,6 +299,20 @@ def main():
         print(
             f"| {r['scene']} {r['rel']:g} | {r['plain_warm'] / r['floor_warm_reduced']:.3g} "
             f"| {r['plain_first'] / r['floor_first_reduced']:.3g} |"
+        )
+    print(
+        "\n| scene, ε | bias lower bounds b_0 … b_5 (units of ε) | V_ℓ/V_0, ℓ = 1 … 5 | multilevel floor warm (QMC on "
+        "every level · first level only), levels k…L | first | plain / floor, warm · first |"
+    )
+    print("|---|---|---|---:|---:|---:|")
+    for r in rows:
+        b = " ".join(f"{x / r['rmse']:.2g}" for x in r["bias_lower_bounds"])
+        v = " ".join(f"{lv['var'] / r['levels'][0]['var']:.2g}" for lv in r["levels"][1:])
+        k, top = r["ml_floor_levels"]
+        print(
+            f"| {r['scene']} {r['rel']:g} | {b} | {v} | {r['ml_floor_warm']:.3g} · "
+            f"{r['ml_floor_warm_qmc_first_level']:.3g} s, {k}…{top} | {r['ml_floor_first']:.3g} s | "
+            f"{r['plain_warm'] / r['ml_floor_warm']:.3g} · {r['plain_first'] / r['ml_floor_first']:.3g} |"
         )
     if cache:
         print(
