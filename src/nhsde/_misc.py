@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 import math
 from typing import Literal, overload
 
@@ -111,9 +110,3 @@ def substeps_span(substeps, dt):
 def fold_key(key, data):
     """``jax.random.fold_in(key, data)`` as one compiled program (called eagerly it compiles two)."""
     return jr.fold_in(key, data)
-
-
-@functools.partial(jax.jit, static_argnums=1)
-def split_key(key, n: int = 2):
-    """``jax.random.split(key, n)`` as a tuple of ``n`` keys, one compiled program (eagerly: a split and an unstack)."""
-    return tuple(jr.split(key, n))

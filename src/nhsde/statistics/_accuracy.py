@@ -51,7 +51,7 @@ import diffrax as dfx
 
 from .._brownian import BLOCK
 from .._ensemble import Save, SimulationError
-from .._misc import check_key, check_number, check_span, is_concrete, split_key
+from .._misc import check_key, check_number, check_span, fold_key, is_concrete
 from .._options import AbstractSteps, Batching, run_options
 from .._simulate import stable_step
 from .._system import StochasticSystem
@@ -328,7 +328,7 @@ def to_accuracy(
     if not is_concrete(system, y0):
         raise TypeError("to_accuracy chooses path counts from a pilot: it needs concrete parameters, not traced ones.")
     key = check_key(key)
-    pilot_key, run_key = split_key(key)
+    pilot_key, run_key = fold_key(key, 0), fold_key(key, 1)  # one program, the pilots' own (a split: another)
     pricing = Pricing(
         system=system,
         y0=y0,
