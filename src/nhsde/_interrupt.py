@@ -5,7 +5,9 @@ computation), so a long ``simulate`` would ignore Ctrl-C until it ends.  :func:`
 routes the signal's number to a pipe as it arrives (``signal.set_wakeup_fd``, written by
 the C-level handler from any thread), and :func:`poll`, called from inside the compiled
 loop through ``jax.debug.callback``, reads it and raises, which aborts the computation;
-Python's handler then raises ``KeyboardInterrupt`` in the main thread as usual.
+Python's handler then raises ``KeyboardInterrupt`` in the main thread as usual, and where it ran before the
+abort reached the main thread (a signal in the first instants of a run), :func:`watching` turns the runtime's error
+around the poll's ``KeyboardInterrupt`` into one.
 """
 
 from __future__ import annotations
@@ -77,6 +79,12 @@ def watching():
     _depth = 1
     try:
         yield
+    except Exception as error:  # a KeyboardInterrupt inside the compiled loop's callback (the poll's, or Python's
+        # handler running in it) reaches here wrapped in the runtime's own error; the pipe says SIGINT arrived
+        _drain()
+        if _pending.is_set():
+            raise KeyboardInterrupt("interrupted (SIGINT) during a compiled run") from error
+        raise
     finally:
         _depth = 0
         signal.set_wakeup_fd(previous)

@@ -18,6 +18,7 @@ import hashlib
 import json
 import os
 import re
+import signal
 import sys
 import time
 from pathlib import Path
@@ -746,6 +747,12 @@ def _runtime_message(error: Exception) -> str:
     return text.splitlines()[0]
 
 
+SIGINT_IGNORED_NOTE = (
+    "nhsde: started with SIGINT ignored (as by `nohup … &`): Ctrl-C cannot stop this run; use `kill` or start it "
+    "in the foreground"
+)
+
+
 def main(argv=None) -> int:
     """Entry point of the ``nhsde`` command; returns the exit status.
 
@@ -760,6 +767,8 @@ def main(argv=None) -> int:
     from .._ensemble import SimulationError
 
     args = build_parser().parse_args(argv)
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN and sys.stderr.isatty():
+        print(SIGINT_IGNORED_NOTE, file=sys.stderr)
     commands = {"scenes": _cmd_scenes, "simulate": _cmd_simulate, "fit": _cmd_fit, "sweep": sweep_command}
     command = commands[args.command]
     try:
