@@ -3,6 +3,7 @@
 Each test is a row of the table of cases that used to go wrong silently under ``jit``, ``grad`` and ``vmap``.
 """
 
+import functools
 import os
 import signal
 import subprocess
@@ -231,6 +232,17 @@ def test_cli_warns_on_a_terminal_when_started_with_sigint_ignored():
         os.close(primary)
         assert child.wait(timeout=STOPPED_WITHIN_S) == 0
         assert (SIGINT_IGNORED_NOTE in b"".join(chunks).decode()) is terminal
+
+
+def test_derivatives_alone_beyond_the_stability_limit_are_refused():
+    """jit(grad(k_xx)) at ε·dt = 25·0.05 used to return 4.7e9 silently: the check rode on the primal output alone,
+    which XLA removes when only derivatives are returned; jit(vmap(jacfwd)) over ε = (1, 25, 2) likewise."""
+    f = functools.partial(k_xx, dt=0.05)
+    with pytest.raises(RUNTIME_ERRORS, match="stability limit"):
+        jax.jit(jax.grad(f))(25.0)
+    with pytest.raises(RUNTIME_ERRORS, match="stability limit"):
+        jax.jit(jax.vmap(jax.jacfwd(f)))(jnp.asarray([1.0, 25.0, 2.0]))
+    assert np.isfinite(float(jax.jit(jax.grad(f))(2.0)))  # before the limit: a derivative
 
 
 def test_traced_parameter_range_message_under_jit_and_filter_jit():

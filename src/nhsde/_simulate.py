@@ -271,6 +271,15 @@ def _run(system: StochasticSystem, needs: SolverNeeds, y0, key, first_path, grid
     # traced parameters get their range checks here; concrete ones were checked before the run (the check is a
     # host callback, which keeps the program out of the persistent cache)
     params = cast_floats(system.params if plan.params_checked else validated(system.params), y0.dtype)
+    unstable = jnp.asarray(False)
+    if plan.traced_stability:  # traced parameters: the stability limit is checked here, with the eager check's cause
+        step = jnp.asarray(grid.work_dt, _work_dtype(y0.dtype))
+        unstable, off, _ = _linear_modes(system.linear_drift, needs, jax.lax.stop_gradient(params), step)
+        if not plan.params_checked:  # (the estimators' forward-mode tangents: their own steps, their bias measured)
+            jax.debug.callback(functools.partial(_warn_variance, solver=needs.name), off, step)
+        # on the parameters the run reads, not only on its outputs: `jit(grad(f))` returns derivatives alone, and
+        # XLA removes a check that rides on the primal outputs only
+        params = eqx.error_if(params, unstable, f"simulate: {SimulationResult[SimulationResult.unstable_step]}")
     chunk_fn = _adaptive_chunk if plan.adaptive else _fixed_chunk
     total = plan.n_chunks * plan.chunk
     if plan.per_path_y0:
@@ -360,12 +369,6 @@ def _run(system: StochasticSystem, needs: SolverNeeds, y0, key, first_path, grid
         failed = bad_all.reshape(-1)[: plan.n_paths]  # pyright: ignore[reportPossiblyUnbound]
         paths = obs_all.reshape(total, plan.n_save, -1)[: plan.n_paths]  # pyright: ignore[reportPossiblyUnbound]
     ts = jnp.linspace(plan.t0, plan.t1, plan.n_save, dtype=y0.dtype)
-    unstable = jnp.asarray(False)
-    if plan.traced_stability:  # traced parameters: the stability limit is checked here, with the eager check's cause
-        step = jnp.asarray(grid.work_dt, _work_dtype(y0.dtype))
-        unstable, off, _ = _linear_modes(system.linear_drift, needs, jax.lax.stop_gradient(params), step)
-        if not plan.params_checked:  # (the estimators' forward-mode tangents: their own steps, their bias measured)
-            jax.debug.callback(functools.partial(_warn_variance, solver=needs.name), off, step)
     return ts, sums, failures, failed, paths, unstable
 
 
