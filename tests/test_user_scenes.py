@@ -1,6 +1,7 @@
 """A scene of the user's goes wherever a shipped one goes: ``MODULE:CLASS`` on the command line, in run files and
 through the ``nhsde.scenes`` entry points; a run of it resumes only from the same module source."""
 
+import hashlib
 import itertools
 import os
 import shutil
@@ -74,13 +75,15 @@ def test_the_command_line_runs_a_user_scene_from_the_current_directory(tmp_path,
     assert str(tmp_path) not in sys.path  # the command leaves sys.path as it was
 
 
-def test_a_run_file_of_a_user_scene_resumes_only_from_the_same_source(tmp_path, monkeypatch):
-    """At eps = nu = 0 the mean is the exact solution; editing the scene's module makes resuming refuse."""
-    monkeypatch.syspath_prepend(str(tmp_path))
-    name = _module(tmp_path)
+def test_a_run_file_of_a_user_scene_resumes_only_from_the_same_source(tmp_path):
+    """At eps = nu = 0 the mean is the exact solution; a run file records its module's SHA-256, checked before the
+    import; editing the scene's module makes loading (and, trusted, resuming) refuse."""
+    name = _module(tmp_path)  # beside the run file: found there, with no sys.path entry
+    source = tmp_path / f"{name}.py"
+    sha256 = hashlib.sha256(source.read_bytes()).hexdigest()
     (tmp_path / "run.toml").write_text(
-        f'scene = "{name}:KnifeEdge"\n[options]\nomega = 2.0\n[solver]\nname = "heun2"\ndt = 0.01\nt1 = 2.0\n'
-        "[paths]\nn = 64\nchunk = 64\n[statistics]\nsave_points = 5\n"
+        f'scene = "{name}:KnifeEdge"\nscene_sha256 = "{sha256}"\n[options]\nomega = 2.0\n'
+        '[solver]\nname = "heun2"\ndt = 0.01\nt1 = 2.0\n[paths]\nn = 64\nchunk = 64\n[statistics]\nsave_points = 5\n'
     )
     config = load_config(tmp_path / "run.toml")
     ds = run(config, tmp_path / "run.nc")
@@ -88,12 +91,59 @@ def test_a_run_file_of_a_user_scene_resumes_only_from_the_same_source(tmp_path, 
     x, y = np.sin(w * t) ** 2 / (2 * w**2), (w * t - np.sin(2 * w * t) / 2) / (2 * w**2)
     np.testing.assert_allclose(ds["mean"].sel(name="x"), x, atol=(w * dt) ** 2)  # heun2: second order in ω dt
     np.testing.assert_allclose(ds["mean"].sel(name="y"), y, atol=(w * dt) ** 2)
-    before = ds.attrs["scene_source"]
+    assert ds.attrs["scene_source"] == sha256
     run(config, tmp_path / "run.nc")  # the same source: resumes (nothing left to do)
-    source = tmp_path / f"{name}.py"
+    sys.modules.pop(name)
     source.write_text(source.read_text().replace("return -p.mass * p.slope * q[0]", "return p.mass * p.slope * q[0]"))
-    with pytest.raises(ConfigError, match=r"was started with the scene's module source \(SHA-256\) " + before):
-        run(load_config(tmp_path / "run.toml"), tmp_path / "run.nc")
+    with pytest.raises(ConfigError, match=f"has SHA-256 [0-9a-f]{{64}}, not the {sha256} recorded"):
+        load_config(tmp_path / "run.toml")
+    assert name not in sys.modules  # refused before the import
+    toml = tmp_path / "run.toml"
+    toml.write_text(toml.read_text().replace(f'scene_sha256 = "{sha256}"\n', ""))  # no hash, trusted: the run file
+    with pytest.raises(ConfigError, match=r"was started with the scene's module source \(SHA-256\) " + sha256):
+        run(load_config(toml, trust_scene=True), tmp_path / "run.nc")
+
+
+MARKER_CODE = "import pathlib; pathlib.Path(__file__).with_suffix('.ran').write_text('ran')\n"
+
+
+def test_a_run_file_from_someone_else_runs_none_of_their_code(tmp_path, monkeypatch, capsys):
+    """A run file naming ``evil:Evil`` used to import ./evil.py (running it) before anything was checked."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "evil.py").write_text(MARKER_CODE)
+    (tmp_path / "run.toml").write_text('scene = "evil:Evil"\n[solver]\ndt = 0.1\nt1 = 1.0\n[paths]\nn = 64\n')
+    assert main(["simulate", "--config", "run.toml"]) == 2
+    err = capsys.readouterr().err
+    assert "records no scene_sha256" in err and "--trust-scene" in err
+    assert hashlib.sha256(MARKER_CODE.encode()).hexdigest() in err  # what to record, found without running it
+    assert not (tmp_path / "evil.ran").exists() and "evil" not in sys.modules
+
+
+def test_shipped_scenes_run_no_module_of_the_current_directory(tmp_path):
+    """The ``nhsde`` command used to put the current directory first on sys.path: a ./scipy.py or ./optax.py ran
+    when a user simulated or fitted a shipped scene there.  A plain console script does not look there."""
+    for name in ("scipy", "optax", "xarray"):
+        (tmp_path / f"{name}.py").write_text(MARKER_CODE)
+    command = Path(sys.executable).parent / "nhsde"
+    assert command.exists(), "the console script of the installed package"
+    env = {**os.environ, "NHSDE_COMPILATION_CACHE": "off"}
+    args = ["simulate", "ball-on-vibrating-plane", "--paths", "64", "--t1", "0.1", "--dt", "0.01"]
+    out = subprocess.run([str(command), *args], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    assert not list(tmp_path.glob("*.ran")), "a module of the current directory ran"
+
+
+def test_a_compilation_cache_others_can_write_to_is_refused(tmp_path, monkeypatch):
+    """The cache holds code that runs: a folder writable by others was used silently."""
+    import nhsde
+
+    shared = tmp_path / "shared"
+    shared.mkdir(mode=0o700)
+    shared.chmod(0o777)
+    with pytest.raises(ValueError, match=r"not used: its mode 777 lets others write to it"):
+        nhsde.enable_compilation_cache(shared)
+    monkeypatch.setenv("NHSDE_COMPILATION_CACHE", str(shared))
+    assert main(["scenes"]) == 2
 
 
 def _install(site: Path, module: str, entry: str) -> None:

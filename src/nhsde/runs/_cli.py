@@ -274,9 +274,9 @@ def _parse_set(items) -> dict[str, float]:
 def _scene_config(args):
     """The run configuration of ``nhsde simulate SCENE``'s options: one piece of all the paths."""
     from ..scenes import get_scene
-    from ._config import ConfigError, RunConfig
+    from ._config import ConfigError, RunConfig, SceneSource
 
-    get_scene(args.scene)  # a ValueError names the known scenes
+    get_scene(args.scene, folder=Path.cwd())  # a ValueError names the known scenes
     raw = {
         "scene": args.scene,
         "seed": args.seed,
@@ -287,7 +287,7 @@ def _scene_config(args):
         "statistics": {"save_points": args.save_points},
     }
     try:
-        return RunConfig.from_dict(raw)
+        return RunConfig.from_dict(raw, scene_source=SceneSource(Path.cwd()))
     except ConfigError as e:
         raise ConfigError(_as_flags(str(e)), e.key) from None
 
@@ -408,7 +408,7 @@ def _cmd_accuracy_scene(args) -> int:
     import jax
 
     from ..scenes import get_scene
-    from ._config import ConfigError, RunConfig
+    from ._config import ConfigError, RunConfig, SceneSource
 
     for name in ("paths", "save_points"):
         if getattr(args, name) is not None:
@@ -417,7 +417,7 @@ def _cmd_accuracy_scene(args) -> int:
                 f"{flag} cannot be combined with --rmse/--relative-rmse: the estimator chooses the paths."
             )
     jax.config.update("jax_enable_x64", True)
-    get_scene(args.scene)  # a ValueError names the known scenes
+    get_scene(args.scene, folder=Path.cwd())  # a ValueError names the known scenes
     t1 = _SCENE_DEFAULTS["t1"] if args.t1 is None else args.t1
     dt = args.dt if args.dt is not None else t1 / math.ceil(t1 / 0.25) if t1 > 0 else 0.25
     accuracy = {
@@ -437,7 +437,7 @@ def _cmd_accuracy_scene(args) -> int:
         "accuracy": {k: v for k, v in accuracy.items() if v is not None},
     }
     try:
-        config = RunConfig.from_dict(raw)
+        config = RunConfig.from_dict(raw, scene_source=SceneSource(Path.cwd()))
     except ConfigError as e:
         raise ConfigError(_as_flags(str(e)), e.key) from None
     return _run_accuracy(config, config.build(), Path(args.out) if args.out else None)
@@ -580,7 +580,7 @@ def _load(args, kind: str):
     from ._config import load_config
 
     jax.config.update("jax_enable_x64", True)
-    return load_config(args.config, kind)
+    return load_config(args.config, kind, trust_scene=args.trust_scene)
 
 
 def _cmd_simulate_config(args) -> int:
@@ -656,6 +656,12 @@ def _cmd_fit(args) -> int:
     return 0
 
 
+_TRUST_HELP = (
+    "with --config: import the file's MODULE:CLASS scene although the file records no scene_sha256 for it (its "
+    "code runs unchecked)"
+)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``nhsde`` command."""
     parser = argparse.ArgumentParser(prog="nhsde", description="Stochastic nonholonomic mechanics in JAX.")
@@ -673,6 +679,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="scene name, see `nhsde scenes`, or MODULE:CLASS, a scene class of your own (or use --config)",
     )
     sim.add_argument("--config", help="a TOML run file; runs (or resumes) it, writing netCDF to --out")
+    sim.add_argument("--trust-scene", action="store_true", help=_TRUST_HELP)
     sim.add_argument("--paths", type=int, help="number of paths (default 4096)")
     sim.add_argument("--t1", type=float, help="final time (default 10)")
     sim.add_argument(
@@ -715,26 +722,13 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     fit.add_argument("--config", help="a TOML fit file")
+    fit.add_argument("--trust-scene", action="store_true", help=_TRUST_HELP)
     fit.add_argument("--out", help="netCDF file for the estimates (default the config's name with .nc)")
     fit_data_flags(fit)  # --data FILE --scene SCENE --fit NAMES, the model's options, --json
     sweep_flags(sub.add_parser("sweep", help="simulate a scene over a grid of parameters; a statistic at each point"))
     for p in (sim, fit):
         add_flags(p)  # --coordinator, --num-processes, --process-id: several processes, process 0 writes
     return parser
-
-
-@contextlib.contextmanager
-def _current_directory_on_path():
-    """``MODULE:CLASS`` scenes import from the current directory first, as with ``python -m``."""
-    here = os.getcwd()
-    added = here not in sys.path
-    if added:
-        sys.path.insert(0, here)
-    try:
-        yield
-    finally:
-        if added:
-            sys.path.remove(here)
 
 
 def _runtime_message(error: Exception) -> str:
@@ -775,10 +769,9 @@ def main(argv=None) -> int:
         global _cache_folder
         _cache_folder = enable_compilation_cache()  # $NHSDE_COMPILATION_CACHE: another folder, or off
         with (
-            _current_directory_on_path(),
-            processes(args),
+            processes(args),  # jax.distributed from the flags or NHSDE_* variables; none: one process
             watching(),  # Ctrl-C stops a compiled run within seconds
-        ):  # jax.distributed from the flags or NHSDE_* variables; none: one process
+        ):
             return command(args)
     except ValueError as e:  # ConfigError, and what simulate refuses
         message, status = str(e), 2

@@ -11,8 +11,10 @@ a scene class of the user's, whose module is imported (running its code, as
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import inspect
 import json
+import re
 import reprlib
 import stat
 import sys
@@ -29,6 +31,7 @@ from .._simulate import MAX_PATH_INDEX, MIN_PATHS
 from .._solvers import SOLVERS, solver_needs
 from .._system import StochasticSystem
 from ..scenes import SCENES, AbstractScene, find_scene
+from ..scenes._lookup import module_source
 
 __all__ = [
     "ACCURACY_SOLVERS",
@@ -215,10 +218,35 @@ def _construct(cls, data: dict) -> AbstractScene:
     raise ConfigError(f"{table}: {error}", table) from None
 
 
-def _check_scene(data: dict) -> tuple[AbstractScene, StochasticSystem]:
+class SceneSource(NamedTuple):
+    """Where a ``MODULE:CLASS`` scene may come from: ``folder`` searched first for ``MODULE``, and whether its code
+    may run unchecked (``trusted``) or only once its source has the SHA-256 ``sha256``."""
+
+    folder: Path | None = None
+    trusted: bool = True
+    sha256: str | None = None
+
+
+def _check_module_scene(name: str, source: SceneSource) -> None:
+    """A run file's own ``MODULE:CLASS`` runs its code only with its source's SHA-256 recorded (or trusted)."""
+    if source.trusted or source.sha256 is not None or ":" not in name or name in SCENES:
+        return  # (a shipped or installed scene's name has no colon)
+    module = name.partition(":")[0]
+    path = module_source(module, source.folder)
+    found = "" if path is None else f" (now {hashlib.sha256(path.read_bytes()).hexdigest()}, of {path})"
+    raise ConfigError(
+        f"scene = {name!r} names a module of your own, whose code runs when it is imported, and this file records "
+        f"no scene_sha256 for it: read the module, then add scene_sha256 = its SHA-256{found}, or pass "
+        "--trust-scene to run it unchecked; it was not imported.",
+        "scene_sha256",
+    )
+
+
+def _check_scene(data: dict, source: SceneSource) -> tuple[AbstractScene, StochasticSystem]:
     """Check the scene-dependent tables; returns the scene and its system (built once, here)."""
+    _check_module_scene(data["scene"], source)
     try:
-        cls = find_scene(data["scene"], SCENES)
+        cls = find_scene(data["scene"], SCENES, folder=source.folder, sha256=source.sha256)
     except ValueError as e:
         raise ConfigError(f"scene = {data['scene']!r}: {e}", "scene") from None
     options = _scene_options(cls)
@@ -374,16 +402,25 @@ class RunConfig:
         return json.dumps(self.data, sort_keys=True)
 
     @classmethod
-    def from_dict(cls, raw: dict, kind: str = "simulate", base: Path | str = ".") -> RunConfig:
-        """Validate the parsed TOML ``raw``; :class:`ConfigError` names the offending key."""
+    def from_dict(
+        cls, raw: dict, kind: str = "simulate", base: Path | str = ".", scene_source: SceneSource = SceneSource()
+    ) -> RunConfig:
+        """Validate the parsed TOML ``raw``; :class:`ConfigError` names the offending key.  A ``MODULE:CLASS``
+        scene is imported as ``scene_source`` allows (by default from ``sys.path``, as ``import`` would)."""
         if kind not in ("simulate", "fit"):
             raise ValueError(f"kind={kind!r}; allowed: 'simulate', 'fit'.")
+        if isinstance(raw, dict) and "scene_sha256" in raw:  # the module's hash: checked, not part of the run
+            raw = dict(raw)
+            sha256 = raw.pop("scene_sha256")
+            if not (isinstance(sha256, str) and re.fullmatch(r"[0-9a-fA-F]{64}", sha256)):
+                raise ConfigError(f"scene_sha256 = {sha256!r}: expected 64 hexadecimal digits.", "scene_sha256")
+            scene_source = scene_source._replace(sha256=sha256)
         data: dict = {}
         accuracy = isinstance(raw, dict) and "accuracy" in raw
         _table("", _schema(kind, accuracy), raw, data)
         if kind == "simulate" and not accuracy:
             del data["accuracy"]  # absent: the plain run, its canonical data unchanged
-        scene, system = _check_scene(data)
+        scene, system = _check_scene(data, scene_source)
         if kind == "simulate":
             _check_times_and_paths(data)
             if accuracy:
@@ -421,8 +458,12 @@ class RunConfig:
         return Built(scene, system, y0, jax.random.key(d["seed"]), names, roles)
 
 
-def load_config(path, kind: str = "simulate") -> RunConfig:
-    """Read and validate the TOML file ``path``; :class:`ConfigError` names the offending key (or the file)."""
+def load_config(path, kind: str = "simulate", trust_scene: bool = False) -> RunConfig:
+    """Read and validate the TOML file ``path``; :class:`ConfigError` names the offending key (or the file).
+
+    A ``MODULE:CLASS`` scene is looked for beside the file first, and imported only when the file records its
+    source's SHA-256 (``scene_sha256``, checked before the import) or ``trust_scene`` is given: a run file received
+    from someone else runs no code of theirs unasked."""
     path = Path(path)
     try:
         info = path.stat()
@@ -441,6 +482,7 @@ def load_config(path, kind: str = "simulate") -> RunConfig:
     except ValueError as e:  # TOMLDecodeError, or an integer of more than 4300 digits
         raise ConfigError(f"{path}: not valid TOML: {e}.") from None
     try:
-        return RunConfig.from_dict(raw, kind, base=path.resolve().parent)
+        base = path.resolve().parent
+        return RunConfig.from_dict(raw, kind, base=base, scene_source=SceneSource(base, trust_scene))
     except ConfigError as e:
         raise ConfigError(f"{path}: {e}", e.key) from None

@@ -173,7 +173,7 @@ def _data_step(ts, t0: float) -> float:
 
 def fit_data(
     data,
-    scene: str,
+    scene: str | type,
     vary: tuple[str, ...],
     *,
     parameters: dict[str, float] | None = None,
@@ -185,7 +185,8 @@ def fit_data(
     t0: float = 0.0,
     max_steps: int = 100,
 ) -> tuple[FitResult, Observations]:
-    """Fit the parameters ``vary`` of the scene ``scene`` to the data file ``data``; returns the fit and the data.
+    """Fit the parameters ``vary`` of the scene ``scene`` (a name of :func:`~nhsde.scenes.get_scene` or a scene
+    class) to the data file ``data``; returns the fit and the data.
 
     The model starts at the scene's initial state at ``t0``: ``"simulate"`` simulates ``n_paths`` paths with
     ``jax.random.key(seed)`` (use a seed other than the data's), ``solver`` and step ``dt``; ``"moments"``
@@ -195,7 +196,7 @@ def fit_data(
     """
     if model not in DATA_MODELS:
         raise ConfigError(f"--model {model!r}: allowed models are {', '.join(DATA_MODELS)}.")
-    scene_cls: Any = get_scene(scene)
+    scene_cls: Any = get_scene(scene) if isinstance(scene, str) else scene
     try:
         built = scene_cls(**(parameters or {}))
     except (TypeError, ValueError) as e:
@@ -258,8 +259,9 @@ def fit_data_command(args) -> int:
         "t0": args.t0,
         "max_steps": args.max_steps,
     }
+    scene = get_scene(args.scene, folder=Path.cwd())  # a MODULE:CLASS named on the command line: the current directory
     result, observed = fit_data(
-        args.data, args.scene, vary, parameters=parameters, **{k: v for k, v in options.items() if v is not None}
+        args.data, scene, vary, parameters=parameters, **{k: v for k, v in options.items() if v is not None}
     )
     if args.json:
         print(

@@ -21,7 +21,7 @@ import jax
 import numpy as np
 
 from .._ensemble import Save
-from ._config import ConfigError, RunConfig, default_statistic, parse_statistic
+from ._config import ConfigError, RunConfig, SceneSource, default_statistic, parse_statistic
 from ._store import FORMAT_VERSION, claim, provenance, seal, write
 
 __all__ = ["SWEEP_FORMAT", "parse_grid", "sweep_command", "sweep_flags"]
@@ -114,7 +114,7 @@ def _config(args, grid: dict[str, list[float]]) -> RunConfig:
         "paths": {"n": n, "chunk": 64 * max(1, -(-n // 64))},
         "statistics": {"save_points": args.save_points},
     }
-    config = RunConfig.from_dict(raw)
+    config = RunConfig.from_dict(raw, scene_source=SceneSource(Path.cwd()))  # a MODULE:CLASS named here
     return dataclasses.replace(config, data=config.data | {"sweep": {"grid": grid, "statistic": args.statistic}})
 
 

@@ -9,6 +9,8 @@ bodies (:class:`RollingBody`, :class:`FlatBaseOnSphere`, :class:`Rattleback`)
 are another kind, :class:`AbstractRollingBodyScene`: ODEs, not in ``SCENES``.
 """
 
+from pathlib import Path
+
 from ._ball import (
     BallOnVibratingPlane as BallOnVibratingPlane,
     BallParameters as BallParameters,
@@ -75,13 +77,15 @@ def installed_scenes() -> dict[str, str]:
     return _installed(SCENES)
 
 
-def get_scene(name: str) -> type[AbstractScene]:
+def get_scene(name: str, *, folder: str | Path | None = None) -> type[AbstractScene]:
     """The scene class called ``name``: a shipped scene, an installed one, or ``MODULE:CLASS``.
 
     Arguments:
         name: a scene's CLI name (a key of ``SCENES`` or of :func:`installed_scenes`), or ``"MODULE:CLASS"``:
             the class ``CLASS`` of the module ``MODULE``, imported from the Python path (which runs the module's
             code, as ``import`` does).
+        folder: a folder to look for ``MODULE`` in first (that module only); the ``nhsde`` command passes the
+            current directory for a ``MODULE:CLASS`` named on its command line, and nothing else looks there.
 
     Returns:
         the scene class (construct it with keyword arguments).
@@ -106,6 +110,6 @@ def get_scene(name: str) -> type[AbstractScene]:
         ValueError: scene 'nhsde.scenes:AbstractSpecScene': AbstractSpecScene is an abstract scene; ...
     """
     try:
-        return find_scene(name, SCENES)
+        return find_scene(name, SCENES, folder=None if folder is None else Path(folder))
     except ValueError as e:
         raise ValueError(f"scene {name!r}: {e}") from None

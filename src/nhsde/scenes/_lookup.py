@@ -5,6 +5,8 @@ from __future__ import annotations
 import functools
 import hashlib
 import importlib
+import importlib.machinery
+import importlib.util
 import inspect
 import sys
 from collections.abc import Mapping
@@ -14,7 +16,7 @@ from typing import cast
 
 from ._base import AbstractScene, is_abstract
 
-__all__ = ["ENTRY_POINT_GROUP", "find_scene", "import_scene", "installed_scenes", "scene_source_hash"]
+__all__ = ["ENTRY_POINT_GROUP", "find_scene", "import_scene", "installed_scenes", "module_source", "scene_source_hash"]
 
 ENTRY_POINT_GROUP = "nhsde.scenes"
 """The entry-point group through which an installed package adds scenes: ``name = "module:Class"``."""
@@ -33,20 +35,57 @@ def _scene_classes(module) -> list[str]:
     ]
 
 
-def import_scene(spec: str) -> type[AbstractScene]:
-    """The scene class ``CLASS`` of ``MODULE`` (imported from ``sys.path``, running its code); a ``ValueError``
-    that says which part is wrong: the form, the module, the attribute, or a class that is not a concrete scene."""
+def module_source(module_name: str, folder: Path | None = None) -> Path | None:
+    """The source file ``import module_name`` would run, found without running any code (``folder`` searched
+    first, then ``sys.path``; the parents of a dotted name are found, not imported); ``None`` if there is none."""
+    locations: list[str] | None = ([str(folder)] if folder is not None else []) + sys.path
+    spec = None
+    for part in module_name.split("."):
+        spec = importlib.machinery.PathFinder.find_spec(part, locations)
+        if spec is None:
+            return None
+        locations = list(spec.submodule_search_locations or [])
+    origin = spec.origin if spec is not None else None
+    return Path(origin) if origin and origin.endswith(".py") else None
+
+
+def _import_module(module_name: str, folder: Path | None):
+    """``module_name``, looked for in ``folder`` first (that module only: its own imports resolve as usual)."""
+    top = module_name.split(".")[0]
+    if folder is not None and top not in sys.modules:
+        spec = importlib.machinery.PathFinder.find_spec(top, [str(folder)])
+        if spec is not None and spec.loader is not None:
+            module = importlib.util.module_from_spec(spec)
+            sys.modules[top] = module
+            try:
+                spec.loader.exec_module(module)
+            except BaseException:
+                del sys.modules[top]
+                raise
+    return importlib.import_module(module_name)
+
+
+def import_scene(spec: str, *, folder: Path | None = None, sha256: str | None = None) -> type[AbstractScene]:
+    """The scene class ``CLASS`` of ``MODULE`` (imported from ``folder``, then ``sys.path``, running its code); a
+    ``ValueError`` that says which part is wrong: the form, the module, the attribute, or a class that is not a
+    concrete scene.  With ``sha256``, the module's source must have that SHA-256, checked before it runs."""
     module_name, _, attribute = spec.partition(":")
     if not module_name or not attribute or ":" in attribute:
         raise ValueError("expected MODULE:CLASS, e.g. my_scenes:KnifeEdge (a module importable from the Python path).")
+    if sha256 is not None:
+        path = module_source(module_name, folder)
+        found = None if path is None else hashlib.sha256(path.read_bytes()).hexdigest()
+        if found != sha256.lower():
+            raise ValueError(
+                f"module {module_name!r} ({path or 'not found'}) has SHA-256 {found}, not the {sha256} recorded "
+                "for it; it was not imported (its code did not run)."
+            )
     try:
-        module = importlib.import_module(module_name)
+        module = _import_module(module_name, folder)
     except ModuleNotFoundError as e:
         if e.name is not None and (module_name == e.name or module_name.startswith(e.name + ".")):
-            raise ValueError(
-                f"no module named {e.name!r} on the Python path (sys.path: PYTHONPATH, the installed packages and, "
-                "for the nhsde command, the current directory)."
-            ) from None
+            where = "" if folder is None else f" or in {folder}"
+            raise ValueError(f"no module named {e.name!r} on the Python path{where}.") from None
         raise ValueError(f"importing module {module_name!r} failed: {e}.") from e
     except Exception as e:  # the module's own code failed: a syntax error, an exception at import
         raise ValueError(f"importing module {module_name!r} failed: {type(e).__name__}: {e}.") from e
@@ -72,9 +111,12 @@ def import_scene(spec: str) -> type[AbstractScene]:
     return cast(type[AbstractScene], obj)
 
 
-def find_scene(name: str, shipped: Mapping[str, type[AbstractScene]]) -> type[AbstractScene]:
-    """The scene class of ``name``: a name of ``shipped``, an installed scene's name, or ``MODULE:CLASS``;
-    a ``ValueError`` saying what is wrong (without the name)."""
+def find_scene(
+    name: str, shipped: Mapping[str, type[AbstractScene]], *, folder: Path | None = None, sha256: str | None = None
+) -> type[AbstractScene]:
+    """The scene class of ``name``: a name of ``shipped``, an installed scene's name, or ``MODULE:CLASS`` (looked
+    for in ``folder`` first, checked against ``sha256`` before it runs: :func:`import_scene`); a ``ValueError``
+    saying what is wrong (without the name)."""
     if name in shipped:
         return shipped[name]
     installed = installed_scenes(shipped)
@@ -86,7 +128,7 @@ def find_scene(name: str, shipped: Mapping[str, type[AbstractScene]]) -> type[Ab
                 f"the installed entry point {name} = {installed[name]!r} ({ENTRY_POINT_GROUP}): {e}"
             ) from e
     if ":" in name:
-        return import_scene(name)
+        return import_scene(name, folder=folder, sha256=sha256)
     known = [*shipped, *installed]
     raise ValueError(f"unknown scene; known scenes: {', '.join(known)}; or MODULE:CLASS for a scene class of your own.")
 
