@@ -107,3 +107,11 @@ def test_cli_sweep_writes_a_sweep_file(tmp_path, capsys):
     assert "sweep: at eps=30: dt=0.05: solver 'euler' is unstable" in capsys.readouterr().err
     assert main([*argv, "--grid", "eps=1:2"]) == 2
     assert "--grid 'eps=1:2': expected NAME=START:STOP:COUNT" in capsys.readouterr().err
+
+
+def test_a_grid_too_large_is_refused_before_any_value_is_made(capsys):
+    """``--grid eps=1:2:1000000000`` was killed by the kernel (rc 137, no message); 1e8 grew to 15.7 GB."""
+    for grid in (["eps=1:2:1000000000"], ["eps=1:2:1000", "nu=1:2:1000"]):
+        assert main(["sweep", "ball-on-vibrating-plane", "--grid", *grid]) == 2
+        err = capsys.readouterr().err
+        assert "points; at most 100,000 (each point is a simulation)" in err, err

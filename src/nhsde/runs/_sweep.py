@@ -31,11 +31,15 @@ SWEEP_FORMAT = "nhsde-sweep"
 _DEFAULTS = {"paths": 4096, "t1": 10.0, "dt": 0.01, "solver": "euler", "seed": 0, "save_points": 11}
 
 
+MAX_GRID_POINTS = 100_000
+"""The most grid points a sweep takes (each is a simulation); checked before any value is made."""
+
+
 def parse_grid(items) -> dict[str, list[float]]:
     """``["eps=0.5:2:4", "nu=0.5,1"]`` → ``{"eps": [0.5, 1, 1.5, 2], "nu": [0.5, 1]}``.
 
     ``START:STOP:COUNT`` is ``COUNT`` equally spaced values from ``START`` to ``STOP``, both included;
-    ``A,B,…`` the values listed.
+    ``A,B,…`` the values listed.  The grid (the product) has at most :data:`MAX_GRID_POINTS` points.
     """
     grid: dict[str, list[float]] = {}
     for item in items:
@@ -50,9 +54,17 @@ def parse_grid(items) -> dict[str, list[float]]:
                 n = int(count)
                 if n < 1:
                     raise ValueError
+                if n * math.prod(len(v) for v in grid.values()) > MAX_GRID_POINTS:
+                    raise ConfigError(
+                        f"--grid {item!r}: {n} values make a grid of "
+                        f"{n * math.prod(len(v) for v in grid.values()):,} points; at most {MAX_GRID_POINTS:,} "
+                        "(each point is a simulation): take fewer values, or several sweeps."
+                    )
                 values = np.linspace(float(start), float(stop), n).tolist()
             else:
                 values = [float(v) for v in text.split(",")]
+        except ConfigError:
+            raise
         except ValueError:
             raise ConfigError(
                 f"--grid {item!r}: expected NAME=START:STOP:COUNT (COUNT ≥ 1) or NAME=A,B,... with numbers."
@@ -60,6 +72,11 @@ def parse_grid(items) -> dict[str, list[float]]:
         if not all(math.isfinite(v) for v in values):
             raise ConfigError(f"--grid {item!r}: the values must be finite.")
         grid[name] = values
+    if math.prod(len(v) for v in grid.values()) > MAX_GRID_POINTS:
+        raise ConfigError(
+            f"--grid: {math.prod(len(v) for v in grid.values()):,} points; at most {MAX_GRID_POINTS:,} (each point is "
+            "a simulation): take fewer values, or several sweeps."
+        )
     if not grid:
         raise ConfigError("--grid: give at least one NAME=START:STOP:COUNT.")
     return grid
