@@ -263,9 +263,26 @@ def test_cli_run_where_every_path_overflows_prints_one_line(tmp_path):
     assert out.returncode == 1, out.stderr
     assert out.stderr.strip().splitlines() == [
         "nhsde simulate: moment_sensitivities: 64 of 64 paths failed (a non-finite state or tangent, or a solver "
-        "error): fewer than 4 paths succeeded; statistics and their standard errors need ≥ 4: try a smaller dt or a "
-        "stiffer-stable solver."
-    ]
+        "error): fewer than 4 paths succeeded; statistics and their standard errors need ≥ 4; nu = 1e+30 is beyond "
+        "4.29e+09, where fourth moments overflow in float32: the scale is the likely cause, not the step; rescale the "
+        "units (or use float64 states)."
+    ]  # (the advice was "try a smaller dt or a stiffer-stable solver": the cause is the scale, not the step)
+
+
+def test_a_huge_initial_state_is_named_as_the_cause_not_the_step():
+    scene = BallOnVibratingPlane(nu=1.0)
+    with pytest.raises(nhsde.SimulationError, match="initial state = 1e.30 is beyond .* the scale is the likely"):
+        nhsde.simulate(scene.build(), jnp.full(4, 1e30, jnp.float32), KEY, n_paths=64, t1=0.1, dt=0.01)
+    doomed = StochasticSystem(  # dy = y³ dt from y0 = 10 blows up at an ordinary scale: the step is advised
+        drift_fn=lambda t, y, p: y**3,
+        diffusion_fn=lambda t, y, p: p * jnp.ones((1, 1), y.dtype),
+        params=jnp.float32(1e-3),
+        layout=StateLayout(("y",), ("independent_coordinate",)),
+        noise_dim=1,
+        additive_noise=True,
+    )
+    with pytest.raises(nhsde.SimulationError, match="try a smaller dt"):
+        nhsde.simulate(doomed, jnp.full(1, 10.0, jnp.float32), KEY, n_paths=64, t1=1.0, dt=0.01)
 
 
 @pytest.mark.parametrize("solver, factor", [("euler", 2.0), ("heun2", 2 / 3)])

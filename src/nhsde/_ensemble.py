@@ -80,16 +80,44 @@ def failure_result(*, unstable, n_failed, n_used, raise_on_failure: bool, overfl
     return SimulationResult.where(unstable, SimulationResult.unstable_step, result)
 
 
-def check_result(outputs, result: SimulationResult, caller: str, details: str = ""):
+def scale_cause(params, y0) -> str:
+    """Where paths failed: a note naming the largest concrete parameter or initial value when it is beyond
+    ``max**(1/4)`` of ``y0``'s precision (fourth moments of such values overflow at any step), else ``""``."""
+    dtype = jnp.asarray(y0).dtype
+    if not jnp.issubdtype(dtype, jnp.floating):
+        return ""
+    limit = float(jnp.finfo(dtype).max) ** 0.25
+    largest, where = 0.0, ""
+    leaves = [*jax.tree_util.tree_leaves_with_path(params), (("initial state",), y0)]
+    for path, leaf in leaves:
+        if not is_concrete(leaf) or not jnp.issubdtype(jnp.asarray(leaf).dtype, jnp.inexact):
+            continue
+        values = np.abs(np.asarray(leaf, np.float64))
+        finite = values[np.isfinite(values)]
+        if finite.size and finite.max() > largest:
+            largest, where = float(finite.max()), "".join(str(getattr(k, "name", k)) for k in path).lstrip(".")
+    if largest <= limit:
+        return ""
+    return (
+        f"{where} = {largest:.3g} is beyond {limit:.3g}, where fourth moments overflow in {dtype.name}: the scale is "
+        "the likely cause, not the step; rescale the units (or use float64 states)."
+    )
+
+
+def check_result(outputs, result: SimulationResult, caller: str, details: str = "", scale: str = ""):
     """``outputs`` once ``result`` is checked: the one place a failed run is reported.
 
     Concrete (a plain call): raises :class:`SimulationError` naming ``caller``, the
     cause and the fix, with ``details`` (counts, the first failed path).  Traced
     (under ``jit``, ``grad``, ``vmap``): every leaf of ``outputs`` carries the same
-    check, so no output of a failed run can be used, whichever is read.
+    check, so no output of a failed run can be used, whichever is read.  ``scale``
+    (:func:`scale_cause`) replaces the advice on the step where the scale is the cause.
     """
     if is_concrete(result):
         message = SimulationResult[result]  # read on the host: no program of its own
+        failed = (SimulationResult.paths_failed, SimulationResult.too_few_paths)
+        if scale and message in (SimulationResult[f] for f in failed):
+            message = message.split(": try", 1)[0].split("; try", 1)[0] + "; " + scale
         if message:
             raise SimulationError(f"{caller}: {details}{message}")
         return outputs

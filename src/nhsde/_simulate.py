@@ -47,6 +47,7 @@ from ._ensemble import (
     StationaryVarianceWarning,
     check_result,
     failure_result,
+    scale_cause,
 )
 from ._interrupt import POLL_ABOVE, POLL_STEPS, poll, watching
 from ._misc import cast_floats, check_key, check_number, is_concrete, under_trace
@@ -788,7 +789,7 @@ def simulate_run(
         details = ""
         if is_concrete(n_failed) and int(n_failed) > 0:
             details = f"{int(n_failed)} of {n_paths} paths failed, first path {int(first_failed)}: "
-        outputs = check_result(outputs, result, "simulate", details)
+        outputs = check_result(outputs, result, "simulate", details, scale_cause(system.params, y0) if details else "")
     mean, cov, mean_se, cov_se, failed, paths = outputs
     roles = tuple(
         system.layout.roles[system.layout.index(n)] if n in system.layout.names else "observable" for n in names

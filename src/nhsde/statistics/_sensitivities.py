@@ -39,7 +39,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from .._ensemble import AbstractMoments, Ensemble, Save, check_result, covariance_variance, failure_result
+from .._ensemble import (
+    AbstractMoments,
+    Ensemble,
+    Save,
+    check_result,
+    covariance_variance,
+    failure_result,
+    scale_cause,
+)
 from .._interrupt import watching
 from .._misc import is_concrete, under_trace
 from .._options import AbstractSteps, Batching, RunOptions, run_options
@@ -269,7 +277,8 @@ def moment_sensitivities(
     details = ""
     if is_concrete(n_failed) and int(n_failed) > 0:
         details = f"{int(n_failed)} of {n_paths} paths failed (a non-finite state or tangent, or a solver error): "
-    moments, d_moments = check_result((moments, d_moments), result, "moment_sensitivities", details)
+    scale = scale_cause(system.params, y0) if details else ""
+    moments, d_moments = check_result((moments, d_moments), result, "moment_sensitivities", details, scale)
     mean, cov, mean_se, cov_se = moments
     d_mean, d_cov, d_mean_se, d_cov_se = d_moments
     return Sensitivities(
