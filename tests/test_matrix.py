@@ -1,0 +1,366 @@
+"""Right on every path: one generated matrix of entry points × transforms × solvers × precisions × scenes × inputs.
+
+Every cell calls one entry point, under one transform, with one solver, precision, scene and input, and must either
+
+- return finite values equal to the plain call's (within :data:`RTOL` of the precision; derivatives against plain
+  ``jax.jacfwd``, an independent route for reverse mode, and ``jacfwd`` itself against a central difference in
+  float64), or
+- raise the library's error naming the cause (:func:`library_error`): its own exception type raised from nhsde's
+  code, or, from inside a compiled program, a runtime error carrying the library's message.
+
+Anything else is a defect: *silent wrong* (a non-finite value without an error, numbers other than the plain call's,
+a result where the plain call refuses the input) or *foreign* (any other exception: JAX's, numpy's, diffrax's).
+
+The axes are registries: a new entry point, transform, solver, precision or scene joins by one line.  The default
+suite runs a fixed, seeded sample covering every entry point, transform, solver, precision and scene at least once
+(:data:`SAMPLE`); ``pytest -m matrix tests/test_matrix.py`` runs every cell; ``python tests/test_matrix.py`` prints
+the table of cells by outcome (``benchmarks/RESULTS.md``).
+"""
+
+from __future__ import annotations
+
+import collections
+import functools
+import itertools
+import random
+import sys
+import traceback
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import nhsde
+from nhsde import AbstractParameters, StateLayout, StochasticSystem, parameter, sqrt_intensity
+from nhsde.scenes import SCENES
+
+sys.path.insert(0, str(Path(__file__).parent / "data"))
+from knife_edge import KnifeEdge  # noqa: E402  the docs' "Your own scene", as a user writes it
+
+KEY = jax.random.key(0)
+N_PATHS, DT, T1 = 16, 0.05, 0.25
+RTOL = {"float32": 2e-4, "float64": 1e-9}
+
+
+# --- scenes: each shipped scene, the docs' user spec scene, a hand-written StochasticSystem ---
+
+
+class OrnsteinUhlenbeckParameters(AbstractParameters):
+    eps: jnp.ndarray = parameter(default=1.0, lower=0.0, doc="friction rate")
+    nu: jnp.ndarray = parameter(default=1.0, lower=0.0, doc="noise intensity")
+
+
+def _ou_drift(t, y, p):
+    return -p.eps * y
+
+
+def _ou_diffusion(t, y, p):
+    return sqrt_intensity(p.nu) * jnp.eye(2, dtype=y.dtype)
+
+
+def _ou_linear(p):
+    return -p.eps * jnp.eye(2, dtype=p.eps.dtype)
+
+
+def hand_written(eps, nu) -> tuple[StochasticSystem, jax.Array]:
+    """The velocity of a particle in a bath, ``du = −ε u dt + √ν dW``, written directly as a system."""
+    system = StochasticSystem(
+        drift_fn=_ou_drift,
+        diffusion_fn=_ou_diffusion,
+        params=OrnsteinUhlenbeckParameters(eps=eps, nu=nu),
+        layout=StateLayout(("u_x", "u_y"), ("velocity", "velocity")),
+        noise_dim=2,
+        additive_noise=True,
+        linear_drift=_ou_linear,
+    )
+    return system, jnp.ones(2)
+
+
+def _scene(cls, eps, nu):
+    scene = cls(eps=eps, nu=nu)
+    return scene.build(), scene.initial_state()
+
+
+SCENE_MAKERS: dict[str, Callable[[Any, Any], tuple[StochasticSystem, jax.Array]]] = {
+    **{name: functools.partial(_scene, cls) for name, cls in SCENES.items()},
+    "user-spec-knife-edge": functools.partial(_scene, KnifeEdge),
+    "hand-written-system": hand_written,
+}
+
+SOLVER_NAMES = tuple(nhsde.SOLVERS)
+PRECISIONS = ("float32", "float64")
+
+
+# --- entry points: a scalar function of the friction eps (a parameter of every scene) ---------------------------------
+
+
+class Cell(NamedTuple):
+    entry: str
+    transform: str
+    solver: str
+    precision: str
+    scene: str
+    input: str
+
+
+def _statistic(ens) -> jax.Array:
+    """A scalar of every saved moment at t1: the sum of the means and of the covariance's diagonal."""
+    return jnp.sum(ens.mean[-1]) + jnp.trace(ens.cov[-1])
+
+
+def entry_simulate(cell: Cell, eps, nu):
+    system, y0 = SCENE_MAKERS[cell.scene](eps, nu)
+    y0 = jnp.asarray(y0, cell.precision)
+    ens = nhsde.simulate(system, y0, KEY, n_paths=N_PATHS, t1=T1, dt=DT, solver=cell.solver)
+    return _statistic(ens)
+
+
+def entry_sensitivities(cell: Cell, eps, nu):
+    system, y0 = SCENE_MAKERS[cell.scene](eps, nu)
+    y0 = jnp.asarray(y0, cell.precision)
+    sens = nhsde.statistics.moment_sensitivities(
+        system, y0, KEY, wrt=("eps",), n_paths=N_PATHS, t1=T1, dt=DT, solver=cell.solver
+    )
+    return jnp.sum(sens.mean[-1]) + jnp.trace(sens.cov[-1]) + jnp.sum(sens.d_mean[0, -1])
+
+
+ENTRY_POINTS: dict[str, Callable] = {
+    "simulate": entry_simulate,
+    "moment_sensitivities": entry_sensitivities,
+}
+
+
+# --- transforms: each returns the values to compare, and how to get the reference from the plain function ------------
+
+
+def _scalar(f):
+    return lambda eps: f(eps)
+
+
+TRANSFORMS: dict[str, Callable] = {
+    "plain": lambda f: f,
+    "jit": jax.jit,
+    "grad": jax.grad,
+    "jit∘grad": lambda f: jax.jit(jax.grad(f)),
+    "jacfwd": jax.jacfwd,
+    "jit∘jacfwd": lambda f: jax.jit(jax.jacfwd(f)),
+    "value_and_grad": lambda f: lambda x: jnp.stack(jax.value_and_grad(f)(x)),
+    "vmap": lambda f: lambda x: jax.vmap(f)(jnp.stack([x, x * 0 + 1.0])),
+    "jit∘vmap∘jacfwd": lambda f: lambda x: jax.jit(jax.vmap(jax.jacfwd(f)))(jnp.stack([x, x * 0 + 1.0])),
+}
+DERIVATIVE = {"grad", "jit∘grad", "jacfwd", "jit∘jacfwd", "value_and_grad", "jit∘vmap∘jacfwd"}
+
+# inputs: (eps, nu) as a user might pass them; "stability" is at εh = 1.5 (beyond every explicit solver's limit on the
+# declared friction), "overflow" a friction of 1e30
+INPUTS: dict[str, tuple[float, float]] = {
+    "good": (1.0, 0.5),
+    "stability": (1.5 / DT, 0.5),
+    "nan": (float("nan"), 0.5),
+    "negative": (-1.0, 0.5),
+    "overflow": (1e30, 0.5),
+    "noise-overflow": (1.0, 1e30),
+}
+
+
+def _reference(cell: Cell, f, x):
+    """What the cell must equal: the plain call's value, its plain ``jacfwd`` for derivatives; lanes stacked as the
+    transform stacks them."""
+    one = jnp.asarray(1.0, x.dtype)
+    if cell.transform in ("plain", "jit"):
+        return f(x)
+    if cell.transform == "vmap":
+        return jnp.stack([f(x), f(one)])
+    if cell.transform == "value_and_grad":
+        return jnp.stack([f(x), jax.jacfwd(f)(x)])
+    if cell.transform == "jit∘vmap∘jacfwd":
+        return jnp.stack([jax.jacfwd(f)(x), jax.jacfwd(f)(one)])
+    return jax.jacfwd(f)(x)
+
+
+# --- outcomes --------------------------------------------------------------------------------------------------------
+
+OUTCOMES = ("finite and equal", "library error", "silent wrong", "foreign exception")
+RUNTIME_ERRORS = (jax.errors.JaxRuntimeError, eqx.EquinoxRuntimeError)
+LIBRARY_TYPES = (ValueError, TypeError, nhsde.SimulationError, NotImplementedError)
+
+
+def library_error(error: BaseException) -> bool:
+    """The library's own error: one of its types raised from nhsde's code, or a runtime error from inside a compiled
+    program carrying an ``eqx.error_if`` message of the library (``EquinoxRuntimeError: …`` in its text)."""
+    if isinstance(error, RUNTIME_ERRORS):
+        text = str(error)
+        return isinstance(error, eqx.EquinoxRuntimeError) or "EquinoxRuntimeError: " in text
+    if isinstance(error, LIBRARY_TYPES):
+        frames = traceback.extract_tb(error.__traceback__)
+        return bool(frames) and "nhsde" in Path(frames[-1].filename).parts
+    return False
+
+
+def _call(fn, *args):
+    try:
+        return jax.block_until_ready(fn(*args)), None
+    except Exception as e:  # noqa: BLE001  classified below
+        return None, e
+
+
+def run_cell(cell: Cell) -> tuple[str, str]:
+    """``(outcome, detail)`` of one cell."""
+    eps, nu = INPUTS[cell.input]
+    dtype = jnp.dtype(cell.precision)
+    f = functools.partial(ENTRY_POINTS[cell.entry], cell, nu=jnp.asarray(nu, dtype))
+    x = jnp.asarray(eps, dtype)
+    with jax.numpy_dtype_promotion("standard"), nhsde_warnings_off():
+        got, error = _call(TRANSFORMS[cell.transform](f), x)
+        want, plain_error = _call(functools.partial(_reference, cell, f), x)
+    if error is not None:
+        if library_error(error):
+            return "library error", str(error).splitlines()[0][:160]
+        return "foreign exception", f"{type(error).__name__}: {str(error).splitlines()[0][:200] if str(error) else ''}"
+    got = np.asarray(got, np.float64)
+    if not np.all(np.isfinite(got)):
+        return "silent wrong", f"non-finite {got}"
+    if plain_error is not None:
+        return "silent wrong", f"{got} where the plain call refuses: {str(plain_error).splitlines()[0][:160]}"
+    want = np.asarray(want, np.float64)
+    scale = max(1.0, float(np.max(np.abs(want))))
+    if not np.allclose(got, want, rtol=RTOL[cell.precision], atol=RTOL[cell.precision] * scale):
+        return "silent wrong", f"{got} against the plain call's {want}"
+    if cell.transform == "jacfwd" and cell.precision == "float64" and cell.input == "good":
+        h = 1e-6
+        fd = (float(f(x + h)) - float(f(x - h))) / (2 * h)
+        if not np.isclose(float(got), fd, rtol=1e-5, atol=1e-6 * scale):
+            return "silent wrong", f"jacfwd {float(got)} against the central difference {fd}"
+    return "finite and equal", ""
+
+
+class nhsde_warnings_off:
+    """The stationary-variance warning is advice, not an outcome."""
+
+    def __enter__(self):
+        import warnings
+
+        self._catch = warnings.catch_warnings()
+        self._catch.__enter__()
+        warnings.simplefilter("ignore", nhsde.StationaryVarianceWarning)
+
+    def __exit__(self, *exc):
+        self._catch.__exit__(*exc)
+
+
+# --- the matrix and its sample ---------------------------------------------------------------------------------------
+
+AXES = (tuple(ENTRY_POINTS), tuple(TRANSFORMS), SOLVER_NAMES, PRECISIONS, tuple(SCENE_MAKERS), tuple(INPUTS))
+ALL_CELLS = [Cell(*c) for c in itertools.product(*AXES)]
+
+
+# the dearest scenes (to compile) meet the cheapest transforms in the default sample
+BY_COST = {
+    "scene": (
+        "hand-written-system", "ball-on-vibrating-plane", "contact-oscillator", "vertical-rolling-disk",
+        "beghin-plate", "bead-on-rotating-rod", "chaplygin-sleigh", "user-spec-knife-edge", "ball-from-lagrangian",
+        "rolling-disk", "chaplygin-sleigh-from-spec", "body-on-vibrating-plane", "chaplygin-ball",
+    ),
+    "transform": (
+        "jit∘vmap∘jacfwd", "value_and_grad", "jit∘grad", "grad", "jit∘jacfwd", "jacfwd", "vmap", "jit", "plain",
+    ),
+    "entry": ("moment_sensitivities", "simulate"),
+}  # fmt: skip
+
+
+def _ordered(axis: int) -> tuple[str, ...]:
+    """An axis's values, the known ones in :data:`BY_COST`'s order, new ones (a new scene or solver) first."""
+    values = AXES[axis]
+    known = BY_COST.get(Cell._fields[axis], ())
+    return tuple(v for v in values if v not in known) + tuple(v for v in known if v in values)
+
+
+def covering_sample() -> list[Cell]:
+    """The fewest cells in which every value of every axis appears: cell ``i`` takes each axis's ``i``-th value,
+    cycling the solvers, precisions and inputs, and padding the transforms and entry points with their cheapest."""
+    axes = [_ordered(a) for a in range(len(AXES))]
+    cyclic = {"solver", "precision", "input"}
+    cells = []
+    for i in range(max(len(v) for v in axes)):
+        cells.append(
+            Cell(
+                *(
+                    v[i % len(v)] if name in cyclic or name == "scene" else v[min(i, len(v) - 1)]
+                    for name, v in zip(Cell._fields, axes)
+                )
+            )
+        )
+    return cells
+
+
+def sample(n: int, seed: int = 0) -> list[Cell]:
+    """The covering sample and random cells up to ``n``, fixed by ``seed``."""
+    rng = random.Random(seed)
+    picked = covering_sample()
+    while len(picked) < n:
+        picked.append(rng.choice(ALL_CELLS))
+    return list(dict.fromkeys(picked))
+
+
+SAMPLE = covering_sample()
+
+
+def _id(cell: Cell) -> str:
+    return "-".join(cell)
+
+
+@pytest.mark.parametrize("cell", SAMPLE, ids=_id)
+def test_cell(cell):
+    outcome, detail = run_cell(cell)
+    assert outcome in ("finite and equal", "library error"), f"{outcome}: {detail}"
+
+
+@pytest.mark.matrix
+@pytest.mark.parametrize("cell", [c for c in ALL_CELLS if c not in SAMPLE], ids=_id)
+def test_whole_matrix(cell):
+    outcome, detail = run_cell(cell)
+    assert outcome in ("finite and equal", "library error"), f"{outcome}: {detail}"
+
+
+def test_the_sample_covers_every_axis():
+    for axis, values in enumerate(AXES):
+        assert {c[axis] for c in SAMPLE} == set(values)
+    assert len(ALL_CELLS) >= 2000
+
+
+def test_library_error_tells_ours_from_foreign():
+    """The classifier itself: a ValueError raised by nhsde is ours, numpy's is not; an error_if message is ours."""
+    _, ours = _call(lambda: nhsde.scenes.BallOnVibratingPlane(eps=-1.0))
+    _, foreign = _call(lambda: np.concatenate([]))
+    _, runtime = _call(jax.jit(lambda x: eqx.error_if(x, x > 0, "the library's cause")), 1.0)
+    assert ours is not None and library_error(ours)
+    assert foreign is not None and not library_error(foreign)
+    assert runtime is not None and library_error(runtime)
+
+
+if __name__ == "__main__":  # the table of cells by outcome: python tests/test_matrix.py [N | all]
+    import time
+
+    jax.config.update("jax_enable_x64", True)
+    cells = ALL_CELLS if sys.argv[1:] == ["all"] else sample(int(sys.argv[1]) if sys.argv[1:] else len(SAMPLE))
+    counts: collections.Counter = collections.Counter()
+    defects = []
+    start = time.monotonic()
+    for i, cell in enumerate(cells):
+        began = time.monotonic()
+        outcome, detail = run_cell(cell)
+        print(f"  {_id(cell)}: {outcome} ({time.monotonic() - began:.1f} s)", flush=True)
+        counts[outcome] += 1
+        if outcome not in ("finite and equal", "library error"):
+            defects.append((cell, outcome, detail))
+            print(f"[{i}] {_id(cell)}: {outcome}: {detail}", flush=True)
+        if i % 25 == 0:
+            print(f"{i}/{len(cells)} cells, {time.monotonic() - start:.0f} s: {dict(counts)}", flush=True)
+    print(f"\n{len(cells)} cells in {time.monotonic() - start:.0f} s")
+    print("| outcome | cells |\n|---|---:|")
+    for outcome in OUTCOMES:
+        print(f"| {outcome} | {counts[outcome]} |")
