@@ -31,3 +31,27 @@ def test_help_tells_the_dt_of_rmse(capsys):
 def test_the_licence_is_mit_and_ships_by_default():
     assert (ROOT / "LICENSE").read_text().startswith("MIT License")
     assert 'license = { text = "MIT" }' in (ROOT / "pyproject.toml").read_text()  # hatchling adds LICENSE* files
+
+
+def test_every_solver_alias_is_listed_in_help(capsys):
+    """``--solver weak2`` worked but was listed neither in ``--help`` nor in the runs guide."""
+    import nhsde
+    from nhsde.runs import build_parser
+
+    for command in ("simulate", "sweep", "fit"):
+        with pytest.raises(SystemExit):
+            build_parser().parse_args([command, "--help"])
+        text = " ".join(capsys.readouterr().out.split())
+        assert all(name in text for name in nhsde.SOLVERS), (command, text)
+    guide = (Path(__file__).parents[1] / "docs" / "guide" / "runs.md").read_text()
+    assert all(f"`{name}`" in guide for name in nhsde.SOLVERS)
+
+
+def test_an_accuracy_run_may_ask_for_an_observable():
+    """``--relative-rmse 0.01 --statistic "mean energy"`` on the sleigh was refused: "energy not saved"."""
+    from nhsde.runs import RunConfig
+
+    raw = {"scene": "chaplygin-sleigh", "solver": {"dt": 0.1, "t1": 1.0}, "paths": {"n": 64}}
+    config = RunConfig.from_dict(raw | {"accuracy": {"relative_rmse": 0.01, "statistic": "mean energy"}})
+    assert "energy" in config.build().names
+    assert RunConfig.from_dict(raw).build().names == config.build().system.layout.names  # a plain run: as before

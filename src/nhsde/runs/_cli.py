@@ -28,6 +28,7 @@ import numpy as np
 
 from .._compilation_cache import enable_compilation_cache
 from .._interrupt import watching
+from ._config import SOLVER_HELP
 from ._distributed import add_flags, processes
 from ._fit import fit_data_flags
 from ._sweep import sweep_command, sweep_flags
@@ -688,7 +689,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="time step (default 0.01); with --rmse the coarsest step the estimators consider "
         "(default: t1 in equal steps of at most 0.25)",
     )
-    sim.add_argument("--solver", help="euler, milstein, heun, heun2, sra1 or exponential (default euler)")
+    sim.add_argument("--solver", help=SOLVER_HELP)
     sim.add_argument("--seed", type=int, help="random seed (default 0)")
     sim.add_argument("--save-points", type=int, help="save times from 0 to t1 (default 11)")
     sim.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="set a scene parameter")
@@ -712,7 +713,8 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--relative-rmse", type=float, help="as --rmse, relative to the pilot's |value|")
     sim.add_argument(
         "--statistic",
-        help="with --rmse: 'cov NAME NAME' or 'mean NAME' at t1 (default the variance of the drift coordinate)",
+        help="with --rmse: 'cov NAME NAME' or 'mean NAME' at t1, NAME a state component or an observable of the "
+        "scene, e.g. 'mean energy' (default the variance of the drift coordinate)",
     )
     sim.add_argument("--max-path-steps", type=float, help="with --rmse: refuse a predicted work above this")
     fit = sub.add_parser(

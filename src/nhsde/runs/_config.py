@@ -218,6 +218,10 @@ def _construct(cls, data: dict) -> AbstractScene:
     raise ConfigError(f"{table}: {error}", table) from None
 
 
+SOLVER_HELP = f"one of {', '.join(SOLVERS)} (default euler)"
+"""The ``--solver`` flags' help: every alias of :data:`~nhsde.SOLVERS`, so a new solver is listed where it is named."""
+
+
 class SceneSource(NamedTuple):
     """Where a ``MODULE:CLASS`` scene may come from: ``folder`` searched first for ``MODULE``, and whether its code
     may run unchecked (``trusted``) or only once its source has the SHA-256 ``sha256``."""
@@ -360,6 +364,11 @@ def _check_accuracy(data: dict, system: StochasticSystem):
             statistic = parse_statistic(a["statistic"])
         except ValueError as e:
             raise ConfigError(f"accuracy.statistic = {e}.", "accuracy.statistic") from None
+        observables = [n for n, _ in system.observables]
+        if save is None and all(n in names or n in observables for n in statistic[1:]):
+            # the statistic names an observable of the scene (its energy, say): saved with the state
+            names += tuple(n for n in dict.fromkeys(statistic[1:]) if n not in names)
+            data["statistics"]["save"] = list(names)
         missing = [n for n in statistic[1:] if n not in names]
         if missing:
             raise ConfigError(

@@ -21,7 +21,7 @@ import jax
 import numpy as np
 
 from .._ensemble import Save
-from ._config import ConfigError, RunConfig, SceneSource, default_statistic, parse_statistic
+from ._config import SOLVER_HELP, ConfigError, RunConfig, SceneSource, default_statistic, parse_statistic
 from ._store import FORMAT_VERSION, claim, provenance, seal, write
 
 __all__ = ["SWEEP_FORMAT", "parse_grid", "sweep_command", "sweep_flags"]
@@ -98,7 +98,7 @@ def sweep_flags(parser: argparse.ArgumentParser):
     parser.add_argument("--paths", type=int, help="paths per grid point (default 4096)")
     parser.add_argument("--t1", type=float, help="final time (default 10)")
     parser.add_argument("--dt", type=float, help="time step (default 0.01)")
-    parser.add_argument("--solver", help="euler, milstein, heun, heun2, sra1 or exponential (default euler)")
+    parser.add_argument("--solver", help=SOLVER_HELP)
     parser.add_argument("--seed", type=int, help="random seed, the same at every point (default 0)")
     parser.add_argument("--save-points", type=int, help="save times from 0 to t1 (default 11)")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="set a scene parameter")
