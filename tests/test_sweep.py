@@ -81,7 +81,18 @@ def test_a_failing_point_is_named_by_its_parameters():
 
 def test_plot_draws_bands_over_one_parameter_and_a_heat_map_over_two(grid_sweep):
     ax = nhsde.plot.sweep(grid_sweep.isel(nu=0))
-    assert ax.get_xlabel() == "eps" and len(ax.collections) == 1  # the band
+    assert len(ax.collections) == 1  # the band
+    # labels a paper can use (they were "eps" and "cov x x at t1"), the fixed parameters in the title
+    t1 = grid_sweep.attrs["t1"]
+    assert ax.get_xlabel() == r"$\varepsilon$" and ax.get_ylabel() == rf"$\mathrm{{Var}}[\mathrm{{u\_x}}](t = {t1:g})$"
+    assert "paths" in ax.get_title()
+    # nothing cut off on a plain savefig: every label's box lies inside the figure
+    fig = ax.figure
+    fig.canvas.draw()
+    box = fig.bbox
+    for text in (ax.xaxis.label, ax.yaxis.label, ax.title):
+        extent = text.get_window_extent()
+        assert box.x0 <= extent.x0 and extent.x1 <= box.x1 and box.y0 <= extent.y0 and extent.y1 <= box.y1, text
     plt.close("all")
     ax = nhsde.plot.sweep(grid_sweep, "d_value_d_eps")
     mesh = ax.collections[0]

@@ -55,7 +55,8 @@ def _axes(ax, n=1, **subplots):
         return ax
     import matplotlib.pyplot as plt
 
-    _, axes = plt.subplots(1, n, figsize=(4.5 * n, 3.6), squeeze=False, **subplots)
+    # constrained layout: the labels fit the figure on a plain savefig
+    _, axes = plt.subplots(1, n, figsize=(4.5 * n, 3.6), squeeze=False, layout="constrained", **subplots)
     return axes[0] if n > 1 else axes[0, 0]
 
 
@@ -221,6 +222,41 @@ def confidence_ellipse(ax, mean, cov, *, n_sigma: float = 2.0, **kwargs):
     return ax
 
 
+_GREEK = {"eps": r"\varepsilon", "nu": r"\nu", "alpha": r"\alpha", "beta": r"\beta", "gamma": r"\gamma"}
+
+
+def _symbol(name: str) -> str:
+    """A parameter or state name as mathtext: ``eps`` → ε, ``x_dot`` → x_dot (upright, escaped)."""
+    return _GREEK.get(name, r"\mathrm{" + name.replace("_", r"\_") + "}")
+
+
+def _sweep_label(ds, variable: str) -> str:
+    """``E[x](t = 10)``, ``Var[x]``, ``Cov[x, y]`` or ``∂E[x]/∂ε`` of a sweep's statistic, for an axis."""
+    kind, *names = str(ds.attrs.get("statistic", "")).split() or ["", ""]
+    if kind not in ("mean", "cov") or not names:
+        return str(ds[variable].attrs.get("long_name", variable))
+    quantity = ", ".join(map(_symbol, names))
+    if kind == "mean":
+        stat = rf"\mathrm{{E}}[{quantity}]"
+    else:
+        stat = rf"\mathrm{{Var}}[{_symbol(names[0])}]" if len(set(names)) == 1 else rf"\mathrm{{Cov}}[{quantity}]"
+    at = f"(t = {float(ds.attrs['t1']):g})" if "t1" in ds.attrs else ""
+    if variable.startswith("d_value_d_"):
+        return rf"$\partial {stat}{at} / \partial {_symbol(variable.removeprefix('d_value_d_'))}$"
+    return f"${stat}{at}$"
+
+
+def _fixed_text(ds) -> str:
+    """The parameters a sweep holds fixed, and its paths: the figure's title."""
+    import json
+
+    fixed = json.loads(ds.attrs.get("parameters", "{}"))
+    parts = [f"${_symbol(k)} = {v:g}$" for k, v in fixed.items()]
+    if "n_paths" in ds.attrs:
+        parts.append(f"{int(ds.attrs['n_paths'])} paths")
+    return ", ".join(parts)
+
+
 def sweep(ds, variable: str = "value", *, ax=None, n_se: float = 2.0, cmap: str = "viridis"):
     """A statistic of :func:`nhsde.sweep` over its grid: markers on a band of ``± n_se`` standard errors
     over one parameter, a heat map over two.
@@ -242,11 +278,12 @@ def sweep(ds, variable: str = "value", *, ax=None, n_se: float = 2.0, cmap: str 
     if set(dims) & {"time", "name", "name2"}:
         raise ValueError(f"sweep: {variable!r} varies over {dims}; draw a statistic over the grid alone (value, …).")
     value = ds[variable]
-    label = value.attrs.get("long_name", variable)
+    label = _sweep_label(ds, variable)
     ax = _axes(ax)
+    ax.set_title(_fixed_text(ds), fontsize=8)
     if len(dims) == 1:
         band(ax, ds[dims[0]].values, value.values, ds[variable + "_se"].values, n_se=n_se, label=label)
-        ax.set_xlabel(dims[0])
+        ax.set_xlabel(f"${_symbol(dims[0])}$")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
@@ -254,8 +291,8 @@ def sweep(ds, variable: str = "value", *, ax=None, n_se: float = 2.0, cmap: str 
         x, y = ds[dims[1]].values, ds[dims[0]].values
         mesh = ax.pcolormesh(x, y, value.values, shading="nearest", cmap=cmap)
         ax.figure.colorbar(mesh, ax=ax, label=label)
-        ax.set_xlabel(dims[1])
-        ax.set_ylabel(dims[0])
+        ax.set_xlabel(f"${_symbol(dims[1])}$")
+        ax.set_ylabel(f"${_symbol(dims[0])}$")
     else:
         raise ValueError(f"sweep: {variable!r} varies over {dims}; select one or two parameters (ds.isel(...)).")
     return ax
