@@ -55,3 +55,13 @@ def test_an_accuracy_run_may_ask_for_an_observable():
     config = RunConfig.from_dict(raw | {"accuracy": {"relative_rmse": 0.01, "statistic": "mean energy"}})
     assert "energy" in config.build().names
     assert RunConfig.from_dict(raw).build().names == config.build().system.layout.names  # a plain run: as before
+
+
+def test_save_chooses_what_a_plain_run_saves_and_prints(capsys):
+    """A plain run of a 6-state scene printed all 27 covariances, with no way to choose."""
+    argv = ["simulate", "chaplygin-sleigh", "--paths", "64", "--t1", "0.2", "--dt", "0.05", "--save-points", "3"]
+    assert main([*argv, "--save", "y,energy"]) == 0
+    rows = [line.split()[0] for line in capsys.readouterr().out.splitlines() if line[:2] in ("m[", "K[")]
+    assert rows == ["m[y]", "m[energy]", "K[y,y]", "K[energy,y]", "K[energy,energy]"]
+    assert main([*argv, "--save", "y,nope"]) == 2
+    assert "--save: 'nope' is not offered; this scene offers x, y, theta, v, omega, energy" in capsys.readouterr().err

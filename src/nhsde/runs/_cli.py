@@ -103,6 +103,7 @@ _FLAGS = {
     "solver.dt": "--dt",
     "solver.name": "--solver",
     "statistics.save_points": "--save-points",
+    "statistics.save": "--save",
     "seed": "--seed",
     "accuracy.rmse": "--rmse",
     "accuracy.relative_rmse": "--relative-rmse",
@@ -285,12 +286,19 @@ def _scene_config(args):
         "parameters": _parse_set(args.set),
         "solver": {"name": args.solver, "dt": args.dt, "t1": args.t1},
         "paths": {"n": args.paths, "chunk": 64 * max(1, -(-args.paths // 64))},
-        "statistics": {"save_points": args.save_points},
+        "statistics": {"save_points": args.save_points, "save": _save_names(args)},
     }
     try:
         return RunConfig.from_dict(raw, scene_source=SceneSource(Path.cwd()))
     except ConfigError as e:
         raise ConfigError(_as_flags(str(e)), e.key) from None
+
+
+def _save_names(args) -> list[str] | None:
+    """``--save x,y,energy``: the state components and observables to save and print (``None``: the state)."""
+    if not args.save:
+        return None
+    return [n.strip() for n in args.save.split(",") if n.strip()]
 
 
 def _accuracy_given(args) -> bool:
@@ -514,7 +522,7 @@ def _cmd_simulate_scene(args) -> int:
             t1=args.t1,
             dt=args.dt,
             solver=args.solver,
-            save=Save(n=args.save_points),
+            save=Save(names=built.names, n=args.save_points),
             on_failure="exclude",
             progress_meter=_progress_meter(args),
         )
@@ -591,6 +599,7 @@ def _cmd_simulate_config(args) -> int:
     given = [f"--{n.replace('_', '-')}" for n in _SCENE_DEFAULTS if getattr(args, n) is not None]
     given += ["--set"] if args.set else []
     given += ["--x64"] if args.x64 else []
+    given += ["--save"] if args.save else []
     given += ["SCENE"] if args.scene is not None else []
     if given:
         raise ConfigError(f"{', '.join(given)} cannot be combined with --config; set them in the file.")
@@ -693,6 +702,11 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--seed", type=int, help="random seed (default 0)")
     sim.add_argument("--save-points", type=int, help="save times from 0 to t1 (default 11)")
     sim.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help="set a scene parameter")
+    sim.add_argument(
+        "--save",
+        metavar="NAME,NAME",
+        help="the state components and observables to save and print, e.g. x,y,energy (default: the whole state)",
+    )
     sim.add_argument(
         "--out",
         help="write the netCDF run file here, exactly this name (for --config default: the config's name with .nc); "
