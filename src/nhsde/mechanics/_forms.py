@@ -29,6 +29,7 @@ from jaxtyping import Array, ArrayLike
 
 from .._misc import is_concrete
 from .._system import StateLayout, StochasticSystem
+from . import _small as small
 from ._dependence import depends_on
 from ._elimination import Elimination, make_elimination
 from ._multipliers import (
@@ -264,11 +265,11 @@ class ReducedForm(AbstractForm):
     def _motion(self, t, q, x, pi, p):
         equations = voronets if self.spec.servo is None else maggi
         g, rhs, v = equations(self.spec, self.elimination, q, x, pi, t, p)
-        return v, jnp.linalg.solve(g, rhs)
+        return v, small.spd_solve(g, rhs)  # g: the reduced kinetic metric, symmetric positive definite
 
     def _noise(self, t, q, x, pi, p):
         g, noise = reduced_noise(self.spec, self.elimination, q, self._velocity(t, q, x, pi, p), pi, t, p)
-        return jnp.linalg.solve(g, noise)
+        return small.spd_solve(g, noise)
 
     def _velocity(self, t, q, x, pi, p):
         psi, b, _, _ = self.elimination.velocity_basis(self.spec, q, pi, t, p)

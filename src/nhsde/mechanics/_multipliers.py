@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 
+from . import _small as small
 from ._spec import MechanicalSpec
 
 __all__ = [
@@ -65,10 +66,10 @@ def _with_reactions(spec: MechanicalSpec, q, pi, t, p):
     """
     rows, _ = spec.velocity_constraints(q, pi, t, p)
     react = spec.displacement_constraints(q, pi, t, p)
-    chol = jnp.linalg.cholesky(spec.inertia(q, pi, t, p))
+    chol = small.cholesky(spec.inertia(q, pi, t, p))
 
     def inverse_mass(x):
-        return jsl.cho_solve((chol, True), x)
+        return small.cho_solve(chol, x)
 
     response = inverse_mass(react.T)
     schur = rows @ response
@@ -77,7 +78,10 @@ def _with_reactions(spec: MechanicalSpec, q, pi, t, p):
         free = inverse_mass(force)
         if rows.shape[0] == 0:
             return free, jnp.zeros(0, free.dtype)
-        lam = jnp.linalg.solve(schur, target - rows @ free)
+        if spec.servo is None:  # D = A: the Schur complement A M⁻¹ Aᵀ is symmetric positive definite
+            lam = small.spd_solve(schur, target - rows @ free)
+        else:
+            lam = jnp.linalg.solve(schur, target - rows @ free)
         return free + response @ lam, lam
 
     return solve
@@ -124,12 +128,12 @@ def _least_compulsion(spec: MechanicalSpec, mass, q, pi, t, p):
     """
     a_rows, _ = spec.ideal_constraints(q, pi, t, p)
     c_rows, _, d_rows = spec.servo_constraints(q, pi, t, p)
-    chol = jnp.linalg.cholesky(mass)
+    chol = small.cholesky(mass)
     if spec.n_ideal:
         k_pinv = jnp.linalg.pinv(jsl.solve_triangular(chol, a_rows.T, lower=True).T)
 
     def least(f, t_a):
-        free = jsl.cho_solve((chol, True), f)
+        free = small.cho_solve(chol, f)
         if not spec.n_ideal:
             return free
         return free + jsl.solve_triangular(chol.T, k_pinv @ (t_a - a_rows @ free), lower=False)

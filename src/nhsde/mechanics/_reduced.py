@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import jax.scipy.linalg as jsl
 
+from . import _small as small
 from ._elimination import Elimination
 from ._multipliers import lagrange_terms
 from ._spec import MechanicalSpec
@@ -117,7 +117,7 @@ def hamiltonian(spec: MechanicalSpec, elim: Elimination, pi, p):
         zero = jnp.zeros_like(z)
         g = jax.hessian(t_star, argnums=1)(q, zero, t)
         g1 = jax.grad(t_star, argnums=1)(q, zero, t)
-        w = jsl.cho_solve((jnp.linalg.cholesky(g), True), z - g1)
+        w = small.spd_solve(g, z - g1)
         return z @ w - t_star(q, w, t) + spec.potential_energy(q, pi, t, p)
 
     return ham

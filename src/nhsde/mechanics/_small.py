@@ -1,0 +1,54 @@
+"""Small symmetric positive-definite systems, unrolled: the mass matrices and Schur complements of scenes.
+
+A scene's mass matrix is a few rows wide, and its vector fields run once per path under ``vmap``: there LAPACK's
+Cholesky and triangular solves are a library call per batch (on the CPU a loop over the paths), which the compiler
+cannot fuse with the arithmetic around them.  Written out entry by entry for the static size, the same
+factorisation is plain arithmetic that XLA fuses into the step.  The equations are the textbook ones
+(``L_jj = √(a_jj − Σ_k L_jk²)``, ``L_ij = (a_ij − Σ_k L_ik L_jk)/L_jj``, forward and back substitution), so the
+result equals LAPACK's to rounding; above :data:`UNROLL_UP_TO` rows LAPACK is used.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import jax.scipy.linalg as jsl
+from jax import Array
+
+__all__ = ["UNROLL_UP_TO", "cho_solve", "cholesky", "spd_solve"]
+
+UNROLL_UP_TO = 8
+"""The largest size factorised entry by entry (the work grows as n³ in the program's size)."""
+
+
+def cholesky(a: Array) -> Array:
+    """The lower Cholesky factor ``L`` of the symmetric positive-definite ``a`` (``(n, n)``), ``a = L Lᵀ``."""
+    n = a.shape[-1]
+    if n > UNROLL_UP_TO:
+        return jnp.linalg.cholesky(a)
+    zero = jnp.zeros((), a.dtype)
+    rows: list[list[Array]] = [[zero] * n for _ in range(n)]
+    for j in range(n):
+        diagonal = jnp.sqrt(a[j, j] - sum((rows[j][k] ** 2 for k in range(j)), zero))
+        rows[j][j] = diagonal
+        for i in range(j + 1, n):
+            rows[i][j] = (a[i, j] - sum((rows[i][k] * rows[j][k] for k in range(j)), zero)) / diagonal
+    return jnp.stack([jnp.stack(row) for row in rows])
+
+
+def cho_solve(chol: Array, b: Array) -> Array:
+    """``x`` with ``L Lᵀ x = b`` for the factor ``chol = L`` of :func:`cholesky`; ``b`` is ``(n,)`` or ``(n, m)``."""
+    n = chol.shape[-1]
+    if n > UNROLL_UP_TO:
+        return jsl.cho_solve((chol, True), b)
+    y: list[Array] = []
+    for i in range(n):  # L y = b
+        y.append((b[i] - sum((chol[i, k] * y[k] for k in range(i)), jnp.zeros_like(b[i]))) / chol[i, i])
+    x: list[Array] = [y[0]] * n
+    for i in reversed(range(n)):  # Lᵀ x = y
+        x[i] = (y[i] - sum((chol[k, i] * x[k] for k in range(i + 1, n)), jnp.zeros_like(y[i]))) / chol[i, i]
+    return jnp.stack(x) if n else b
+
+
+def spd_solve(a: Array, b: Array) -> Array:
+    """``x`` with ``a x = b`` for a symmetric positive-definite ``a``."""
+    return cho_solve(cholesky(a), b)
