@@ -76,6 +76,7 @@
 # (default `notebooks/_output`).
 
 # %%
+import os
 import time
 
 import jax
@@ -103,6 +104,16 @@ print(
     f"nhsde {nhsde.__version__}, jax {jax.__version__} on {jax.devices()[0].platform}; figures -> {plot.figure_dir()}"
 )
 
+# %%
+# The run's size: NHSDE_NOTEBOOK_SIZE=full (the default; the sizes the text quotes, the stored outputs)
+# or small (the test suite's quick run: every cell and figure, with a quarter of the paths and 3 of
+# the 6 gradient points, so the error bars are twice as wide).
+SIZE = os.environ.get("NHSDE_NOTEBOOK_SIZE", "full")
+if SIZE not in ("full", "small"):
+    raise ValueError(f"NHSDE_NOTEBOOK_SIZE={SIZE!r}; allowed: 'full', 'small'")
+SMALL = SIZE == "small"
+print(f"size: {SIZE}")
+
 # %% [markdown]
 # ## Parameters
 #
@@ -122,7 +133,7 @@ print(
 EPS, NU, KAPPA = 0.6, 1.0, 0.4
 T1, DT = 5.0, 0.005
 SOLVER = "sra1"
-N_PATHS = 4096
+N_PATHS = 1024 if SMALL else 4096
 
 scene = BallOnVibratingPlane(eps=EPS, nu=NU, inertia_ratio=KAPPA)
 system = scene.build()
@@ -276,8 +287,8 @@ _ = plot.save(fig, "ball_covariances.png")
 # in SE units are those of $k_{xx}$ itself (printed last).
 
 # %%
-N_BATCH, BATCH_PATHS = 16, 256
-EPS_GRID = np.geomspace(0.3, 3.0, 6)
+N_BATCH, BATCH_PATHS = (8, 128) if SMALL else (16, 256)
+EPS_GRID = np.geomspace(0.3, 3.0, 3 if SMALL else 6)
 NU_G = NU
 
 
@@ -398,7 +409,7 @@ _ = plot.save(fig, "ball_gradients.png")
 # `ens.cov_se` (for a Gaussian it is $\approx k_{uu}\sqrt{2/n}$).
 
 # %%
-N_HIST = 4096
+N_HIST = 1024 if SMALL else 4096
 ens_u = nhsde.simulate(
     system,
     scene.initial_state(),

@@ -31,6 +31,7 @@
 # vibration cannot change: from rest (`J = 0`) it does not reach S0's law.
 
 # %%
+import os
 import time
 
 import jax
@@ -78,6 +79,16 @@ def histogram(ax, theta, label, **kw):
     ax.errorbar(centres, mean, yerr=2 * se, fmt="o", ms=3, capsize=2, label=label, **kw)
 
 
+# %%
+# The run's size: NHSDE_NOTEBOOK_SIZE=full (the default; the stored outputs) or small (the test
+# suite's quick run: every cell and figure with 128 paths per ensemble instead of 1024, so the
+# histograms' error bars are about three times as wide).
+SIZE = os.environ.get("NHSDE_NOTEBOOK_SIZE", "full")
+if SIZE not in ("full", "small"):
+    raise ValueError(f"NHSDE_NOTEBOOK_SIZE={SIZE!r}; allowed: 'full', 'small'")
+N_PATHS = 128 if SIZE == "small" else 1024
+print(f"size: {SIZE}, {N_PATHS} paths per ensemble")
+
 # %% [markdown]
 # ## The spheroid at two temperatures
 
@@ -88,9 +99,9 @@ for ax, (eps, nu) in zip(axes, [(1.0, 2.0), (1.0, 4.0)]):
     scene = BodyOnVibratingPlane(body=spheroid, eps=eps, nu=nu, gravity=1.0)
     alpha = float(scene.params.alpha)
     ax.plot(THETA, np.asarray(stationary_nutation_density(scene.params, THETA)), "k-", label="S0 Statement 2")
-    y0 = sample_stationary(scene.params, jax.random.key(1), 1024)
+    y0 = sample_stationary(scene.params, jax.random.key(1), N_PATHS)
     histogram(ax, nutation_samples(scene, y0, key=2), "ensemble from the stationary law")
-    rest = jnp.broadcast_to(scene.initial_state(), (1024, 6))
+    rest = jnp.broadcast_to(scene.initial_state(), (N_PATHS, 6))
     histogram(ax, nutation_samples(scene, rest, key=3), "ensemble from rest")
     ax.set_title(f"oblate spheroid, α = 4ε/(mν) = {alpha:g}")
     ax.set_xlabel("nutation angle θ")
@@ -114,11 +125,13 @@ fig, ax = plt.subplots(figsize=(6, 4.2))
 ax.plot(THETA, np.asarray(stationary_nutation_density(scene.params, THETA)), "k-", label="S0 Statement 2")
 histogram(
     ax,
-    nutation_samples(scene, sample_stationary(scene.params, jax.random.key(4), 1024), key=5),
+    nutation_samples(scene, sample_stationary(scene.params, jax.random.key(4), N_PATHS), key=5),
     "from the stationary law",
 )
 histogram(
-    ax, nutation_samples(scene, jnp.broadcast_to(scene.initial_state(), (1024, 6)), key=6), "from rest: J = 0 forever"
+    ax,
+    nutation_samples(scene, jnp.broadcast_to(scene.initial_state(), (N_PATHS, 6)), key=6),
+    "from rest: J = 0 forever",
 )
 ax.set_title("Routh's sphere (R = 1, centre of mass 0.3 below the centre)")
 ax.set_xlabel("nutation angle θ")

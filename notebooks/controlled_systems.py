@@ -33,6 +33,7 @@
 # kept by contact.
 
 # %%
+import os
 
 import diffrax as dfx
 import equinox as eqx
@@ -67,6 +68,15 @@ def solve(form, y0, ts, extra=None):
     )
     return sol.ys[:, :-1], sol.ys[:, -1]
 
+
+# %%
+# The run's size: NHSDE_NOTEBOOK_SIZE=full (the default; the stored outputs) or small (the test suite's
+# quick run).  Both run the same here: this notebook's time is compiling its few integrations, which
+# take milliseconds once compiled, so a smaller run would save nothing.
+SIZE = os.environ.get("NHSDE_NOTEBOOK_SIZE", "full")
+if SIZE not in ("full", "small"):
+    raise ValueError(f"NHSDE_NOTEBOOK_SIZE={SIZE!r}; allowed: 'full', 'small'")
+print(f"size: {SIZE} (the same work at either size)")
 
 # %% [markdown]
 # ## 1. A bead on a rod turned by a control

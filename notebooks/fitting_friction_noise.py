@@ -65,6 +65,7 @@
 # `notebooks/_output`).
 
 # %%
+import os
 import time
 
 import jax
@@ -89,6 +90,16 @@ def z_scores(result, truth):
 
 print(f"nhsde {nhsde.__version__}, jax {jax.__version__}; figures -> {plot.figure_dir()}")
 
+# %%
+# The run's size: NHSDE_NOTEBOOK_SIZE=full (the default; the sizes the text quotes, the stored outputs)
+# or small (the test suite's quick run: every cell and figure with a quarter of the observed and
+# simulated paths and 10 data sets of 256 paths for the calibration, so the error bars are twice as wide).
+SIZE = os.environ.get("NHSDE_NOTEBOOK_SIZE", "full")
+if SIZE not in ("full", "small"):
+    raise ValueError(f"NHSDE_NOTEBOOK_SIZE={SIZE!r}; allowed: 'full', 'small'")
+SMALL = SIZE == "small"
+print(f"size: {SIZE}")
+
 # %% [markdown]
 # ## 1. The ball: synthetic data
 #
@@ -100,7 +111,7 @@ print(f"nhsde {nhsde.__version__}, jax {jax.__version__}; figures -> {plot.figur
 # %%
 EPS, NU = 0.8, 1.5
 NAMES = ("x", "u_x")
-N_OBS = 2048
+N_OBS, N_SIM = (512, 1024) if SMALL else (2048, 4096)  # observed paths, paths of the simulated model
 DELTA = float(BallOnVibratingPlane().params.delta)
 
 ball_true = BallOnVibratingPlane(eps=EPS, nu=NU).build()
@@ -137,7 +148,7 @@ start = BallOnVibratingPlane(eps=0.3, nu=0.5).build()
 fits = {}
 for label, model in [
     ("closed form", fit.ClosedForm(ball_closed_form)),
-    ("simulator", fit.Simulated(jnp.zeros(4), jax.random.key(2), n_paths=4096, steps=0.02, solver="sra1")),
+    ("simulator", fit.Simulated(jnp.zeros(4), jax.random.key(2), n_paths=N_SIM, steps=0.02, solver="sra1")),
 ]:
     t0 = time.perf_counter()
     fits[label] = fit.estimate(start, observed, model)
@@ -146,7 +157,7 @@ for label, model in [
 ratio = fits["simulator"].se / fits["closed form"].se
 print(
     f"\nSE(simulator)/SE(closed form) = {np.array2string(ratio, precision=3)}; "
-    f"expected about sqrt(1 + n_obs/n_sim) = {np.sqrt(1 + N_OBS / 4096):.3f}"
+    f"expected about sqrt(1 + n_obs/n_sim) = {np.sqrt(1 + N_OBS / N_SIM):.3f}"
 )
 
 # %% [markdown]
@@ -240,7 +251,7 @@ _ = plot.save(fig, "fitting_ball_landscape.png")
 # should average about their degrees of freedom.
 
 # %%
-N_SETS, N_EACH = 40, 1024
+N_SETS, N_EACH = (10, 256) if SMALL else (40, 1024)
 many = nhsde.simulate(
     ball_true,
     jnp.zeros(4),
@@ -314,7 +325,7 @@ s_obs = fit.Observations.from_paths(s_data.ts[1:], s_data.paths[:, 1:], ("v", "o
 s_start = ChaplyginSleigh(eps=0.2, nu=0.3, drift=False).build()
 s_fits = {}
 for label, model in [
-    ("simulator", fit.Simulated(Y0, jax.random.key(5), n_paths=4096, steps=0.02)),
+    ("simulator", fit.Simulated(Y0, jax.random.key(5), n_paths=N_SIM, steps=0.02)),
     ("moment equations", fit.MomentEquations(Y0, dt=0.05)),
 ]:
     t0 = time.perf_counter()
@@ -337,7 +348,7 @@ curves = {}
 for label, res in s_fits.items():
     system = sleigh_true.replace_params(**res.params)
     curves[label] = (
-        nhsde.simulate(system, Y0, jax.random.key(6), n_paths=16384, t1=3.0, dt=0.02, save=fine),
+        nhsde.simulate(system, Y0, jax.random.key(6), n_paths=4 * N_SIM, t1=3.0, dt=0.02, save=fine),
         nhsde.statistics.normal_approximation(system, Y0, t1=3.0, dt=0.05, save=fine),
     )
 se = np.sqrt(np.diag(s_obs.covariance)).reshape(len(s_obs.ts), -1)  # v, ω, K_vv, K_vω, K_ωω

@@ -31,6 +31,7 @@
 # sense is asymptotically stable the other is unstable (S4 Remark 4.4).
 
 # %%
+import os
 import time
 
 import equinox as eqx
@@ -57,6 +58,17 @@ def pitch_and_roll(scene, spins):
     upper = np.take_along_axis(eig, np.argsort(key, axis=1), axis=1)
     return upper[:, 1], upper[:, 0]
 
+
+# %%
+# The run's size: NHSDE_NOTEBOOK_SIZE=full (the default; the stored outputs) or small (the test
+# suite's quick run: every cell and figure, the long integrations over 20 s instead of 60 s, so the
+# second reversal and most of the slow growth and decay are cut off).
+SIZE = os.environ.get("NHSDE_NOTEBOOK_SIZE", "full")
+if SIZE not in ("full", "small"):
+    raise ValueError(f"NHSDE_NOTEBOOK_SIZE={SIZE!r}; allowed: 'full', 'small'")
+T_LONG = 20.0 if SIZE == "small" else 60.0
+N_SAVE = int(100 * T_LONG) + 1  # saved every 0.01 s
+print(f"size: {SIZE}, long integrations over {T_LONG:g} s")
 
 # %% [markdown]
 # ## Growth rates in both senses
@@ -112,10 +124,10 @@ def tilt(flow):
 
 
 fig, axes = plt.subplots(1, 3, figsize=(14, 4))
-for ax, n, t1 in ((axes[0], 5.0, 6.0), (axes[1], -5.0, 60.0)):
+for ax, n, t1 in ((axes[0], 5.0, 6.0), (axes[1], -5.0, T_LONG)):
     rate = float(linear_stability(kl.vector_field, kl.spin(n), kl.params, n_family=2).growth_rate)
     flow = solve_flow(
-        kl.vector_field, kl.spin(n, 1e-8, 0.7)[None], kl.params, t1=t1, n_save=6001, rtol=1e-12, atol=1e-14
+        kl.vector_field, kl.spin(n, 1e-8, 0.7)[None], kl.params, t1=t1, n_save=N_SAVE, rtol=1e-12, atol=1e-14
     )
     ts = np.asarray(flow.ts)
     ax.semilogy(ts, tilt(flow), "C0", lw=0.3, label="tilt |γ × e₃| (nonlinear flow)")
@@ -130,8 +142,8 @@ flow = solve_flow(
     variant.vector_field,
     variant.spin(-50.0, 1e-4, 0.7)[None],
     variant.params,
-    t1=60.0,
-    n_save=6001,
+    t1=T_LONG,
+    n_save=N_SAVE,
     rtol=1e-11,
     atol=1e-13,
 )
@@ -139,7 +151,7 @@ ts, ys = np.asarray(flow.ts), np.asarray(flow.ys[0])
 axes[2].semilogy(ts, tilt(flow), "C2", lw=0.3, label="tilt (nonlinear flow)")
 axes[2].semilogy(
     ts,
-    2 * tilt(flow)[2000:].max() * np.exp(slowest * (ts - ts[2000])),
+    2 * tilt(flow)[N_SAVE // 3 :].max() * np.exp(slowest * (ts - ts[N_SAVE // 3])),
     "k--",
     lw=1,
     label=f"∝ e^(Re μ t), Re μ = {slowest:.4f}/s",
@@ -165,7 +177,7 @@ _ = plot.save(fig, "rattleback_growth_fit.png", dpi=110)
 
 # %%
 flow = solve_flow(
-    kl.vector_field, jnp.stack([kl.spin(5.0, 1e-3), kl.spin(-5.0, 1e-3)]), kl.params, t1=60.0, n_save=6001
+    kl.vector_field, jnp.stack([kl.spin(5.0, 1e-3), kl.spin(-5.0, 1e-3)]), kl.params, t1=T_LONG, n_save=N_SAVE
 )
 ts, ys = np.asarray(flow.ts), np.asarray(flow.ys)
 spin = np.sum(ys[..., :3] * ys[..., 3:], axis=-1) / np.linalg.norm(ys[..., 3:], axis=-1)
@@ -176,8 +188,8 @@ print("relative energy drift", np.asarray(drift["E"]) / energy0, " |γ²| drift"
 fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
 for k, label in enumerate(("counter-clockwise start", "clockwise start")):
     axes[0].plot(ts, spin[k], lw=0.8, label=label)
-    envelope = np.degrees(np.arccos(np.clip(ys[k, 1:, 5], -1, 1))).reshape(300, 20).max(axis=1)  # per 0.2 s
-    axes[1].plot(ts[1:].reshape(300, 20)[:, 10], envelope, lw=0.8, label=label)
+    envelope = np.degrees(np.arccos(np.clip(ys[k, 1:, 5], -1, 1))).reshape(-1, 20).max(axis=1)  # per 0.2 s
+    axes[1].plot(ts[1:].reshape(-1, 20)[:, 10], envelope, lw=0.8, label=label)
 axes[0].axhline(0, color="grey", lw=0.5)
 axes[0].set_ylabel("spin about the vertical (rad/s)")
 axes[0].legend(fontsize=8)

@@ -35,11 +35,12 @@
 # | ball on the vibrating plane (linear, additive noise) | $k_{xx}(t_1)$ | the closed form of S0 (3.1) |
 # | noisy Chaplygin sleigh (nonlinear) | $\mathbb E[H](t_1)$ | $H_0 e^{-4\varepsilon t_1} + \nu(1 - e^{-4\varepsilon t_1})/(4\varepsilon)$ (Itô's formula) |
 #
-# The run here is small (8192 paths, three solvers, three steps) so that it executes in CI;
+# The run here is small (8192 paths, three solvers, three steps);
 # `python benchmarks/work_precision.py` runs the full study.  Figures go to
 # `$NHSDE_NOTEBOOK_OUT` (default `notebooks/_output`).
 
 # %%
+import os
 import time
 
 import jax
@@ -61,6 +62,16 @@ print(
     f"nhsde {nhsde.__version__}, jax {jax.__version__}; solvers {list(nhsde.SOLVERS)}; figures -> {plot.figure_dir()}"
 )
 
+# %%
+# The run's size: NHSDE_NOTEBOOK_SIZE=full (the default; the sizes the text quotes, the stored outputs)
+# or small (the test suite's quick run: every cell and the figure for two solvers at two steps on 1024
+# paths; each solver and step is compiled anew, which is most of this notebook's time).
+SIZE = os.environ.get("NHSDE_NOTEBOOK_SIZE", "full")
+if SIZE not in ("full", "small"):
+    raise ValueError(f"NHSDE_NOTEBOOK_SIZE={SIZE!r}; allowed: 'full', 'small'")
+SMALL = SIZE == "small"
+print(f"size: {SIZE}")
+
 # %% [markdown]
 # ## The two cases
 #
@@ -70,11 +81,11 @@ print(
 # scene's `energy` observable.  SRA1 needs additive noise, which both have.
 
 # %%
-N_PATHS = 8192
-DTS = [2.0**-k for k in (3, 4, 5)]
+N_PATHS = 1024 if SMALL else 8192
+DTS = [2.0**-k for k in ((3, 4) if SMALL else (3, 4, 5))]
 # For additive noise (both scenes) Milstein and Euler–Heun take exactly the Euler–Maruyama
 # step, so they are left out here; the full benchmark measures them too.
-SOLVERS = ["euler", "sra1", "exponential"]
+SOLVERS = ["euler", "sra1"] if SMALL else ["euler", "sra1", "exponential"]
 
 ball = BallOnVibratingPlane(eps=1.0, nu=1.0)
 sleigh = ChaplyginSleigh(eps=0.5, nu=1.0)
