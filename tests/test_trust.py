@@ -27,6 +27,16 @@ KEY = jax.random.key(0)
 RUNTIME_ERRORS = (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError)
 
 
+DOOMED = StochasticSystem(  # dy = y³ dt from y0 = 10 blows up at t = 0.005
+    drift_fn=lambda t, y, p: y**3,
+    diffusion_fn=lambda t, y, p: p * jnp.ones((1, 1), y.dtype),
+    params=jnp.float32(1e-3),
+    layout=StateLayout(("y",), ("independent_coordinate",)),
+    noise_dim=1,
+    additive_noise=True,
+)
+
+
 def k_xx(eps, dt=0.1, solver="euler", n_paths=64):
     """The README's statistic: K_xx(t1) of the ball, a function of a (possibly traced) friction."""
     scene = BallOnVibratingPlane(eps=eps, nu=1.0)
@@ -72,14 +82,7 @@ def test_stationary_variance_off_by_more_than_ten_percent_warns_with_the_factor_
 
 def test_all_paths_failed_under_jit_fails_every_output():
     """With on_failure='exclude' under jit, cov came back NaN and cov_se 0; only mean carried the guard."""
-    doomed = StochasticSystem(  # dy = y³ dt from y0 = 10 blows up at t = 0.005
-        drift_fn=lambda t, y, p: y**3,
-        diffusion_fn=lambda t, y, p: p * jnp.ones((1, 1), y.dtype),
-        params=jnp.float32(1e-3),
-        layout=StateLayout(("y",), ("independent_coordinate",)),
-        noise_dim=1,
-        additive_noise=True,
-    )
+    doomed = DOOMED
 
     def run(scale):
         ens = nhsde.simulate(
@@ -273,14 +276,7 @@ def test_a_huge_initial_state_is_named_as_the_cause_not_the_step():
     scene = BallOnVibratingPlane(nu=1.0)
     with pytest.raises(nhsde.SimulationError, match="initial state = 1e.30 is beyond .* the scale is the likely"):
         nhsde.simulate(scene.build(), jnp.full(4, 1e30, jnp.float32), KEY, n_paths=64, t1=0.1, dt=0.01)
-    doomed = StochasticSystem(  # dy = y³ dt from y0 = 10 blows up at an ordinary scale: the step is advised
-        drift_fn=lambda t, y, p: y**3,
-        diffusion_fn=lambda t, y, p: p * jnp.ones((1, 1), y.dtype),
-        params=jnp.float32(1e-3),
-        layout=StateLayout(("y",), ("independent_coordinate",)),
-        noise_dim=1,
-        additive_noise=True,
-    )
+    doomed = DOOMED  # at an ordinary scale: the step is advised
     with pytest.raises(nhsde.SimulationError, match="try a smaller dt"):
         nhsde.simulate(doomed, jnp.full(1, 10.0, jnp.float32), KEY, n_paths=64, t1=1.0, dt=0.01)
 
