@@ -138,9 +138,12 @@ def test_cli_fit_from_a_csv_prints_json(data, capsys):
     argv = ["fit", "--data", str(per_path), "--scene", "ball-on-vibrating-plane", "--fit", "eps,nu"]
     assert main([*argv, "--model", "moments", "--dt", "0.5", "--set", "eps=0.5", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
-    assert set(out) == {"eps", "nu"} and all(set(v) == {"value", "se"} for v in out.values())
+    fit_keys = {"chi2", "dof", "chi2_per_dof", "converged", "steps", "note"}
+    assert set(out) == {"eps", "nu"} | fit_keys and all(set(out[n]) == {"value", "se"} for n in ("eps", "nu"))
     for name, truth in (("eps", EPS), ("nu", NU)):
         assert abs(out[name]["value"] - truth) < 4 * out[name]["se"], out
+    assert out["dof"] == 8 * 5 - 2 and out["chi2_per_dof"] == pytest.approx(out["chi2"] / out["dof"])
+    assert out["converged"] is True and isinstance(out["steps"], int) and out["steps"] >= 1 and out["note"] == ""
 
 
 @pytest.mark.parametrize(

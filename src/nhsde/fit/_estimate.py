@@ -58,7 +58,7 @@ import numpy as np
 from jaxtyping import Array, PRNGKeyArray
 
 from .._ensemble import Save
-from .._options import Batching, FixedSteps
+from .._options import Batching, FixedSteps, RunOptions
 from .._simulate import simulate
 from .._system import StochasticSystem
 from ..statistics import moment_sensitivities, normal_approximation
@@ -107,10 +107,37 @@ class AbstractStatisticsModel(eqx.Module):
         (correlations across times included), or ``None`` where the model cannot tell (here)."""
         return None
 
+    def check_times(self, ts) -> None:
+        """Refuse, before any run, observation times ``ts`` the model cannot give (here: none)."""
+
+
+def check_step_budget(t0: float, t1: float, steps: FixedSteps, remedy: str) -> int:
+    """The steps of ``steps.dt`` over ``(t0, t1)``; beyond the budget ``steps.max_steps`` refused by
+    :class:`~nhsde._options.RunOptions`' rule, in its words, with ``remedy`` for its advice."""
+    try:
+        return RunOptions(t0=t0, t1=t1, steps=steps, solver="euler").n_steps
+    except ValueError as e:
+        reason, cut, _ = str(e).partition("; raise it with")
+        raise ValueError(f"{reason}; {remedy}" if cut else str(e)) from None
+
+
+def _real_state(name: str, value):
+    """Refuse a complex ``y0`` or ``cov0``: the solvers would take its real part alone."""
+    if value is not None and jnp.iscomplexobj(value):
+        raise TypeError(
+            f"{name} has the complex dtype {jnp.asarray(value).dtype}; the state is real (its imaginary part "
+            "would be lost): give real and imaginary parts as separate components."
+        )
+
 
 def _save_grid(ts, t0: float, model: str) -> np.ndarray:
     """Indices ``j`` of the observation times ``ts = t0 + j·h`` on an equally spaced save grid."""
     ts = np.asarray(ts, np.float64)
+    if len(ts) and ts[0] < t0:
+        raise ValueError(
+            f"{model}: t0={t0:g} is after the first observation time {ts[0]:g}; the model runs from t0 and gives "
+            f"statistics at times ≥ t0: take t0 ≤ {ts[0]:g}."
+        )
     h = ts[0] - t0 if len(ts) == 1 else ts[1] - ts[0]
     index = np.round((ts - t0) / h).astype(int) if h > 0 else None
     if index is None or np.any(np.abs(t0 + index * h - ts) > 1e-9 * max(1.0, abs(ts[-1]))):
@@ -147,6 +174,16 @@ class Simulated(AbstractStatisticsModel):
     solver: str | dfx.AbstractSolver = eqx.field(static=True, default="euler")
     batching: Batching | None = eqx.field(static=True, default=None)
     t0: float = eqx.field(static=True, default=0.0)
+
+    def __check_init__(self):
+        _real_state("y0", self.y0)
+
+    def check_times(self, ts) -> None:
+        """Observation times on the save grid from ``t0``, within the step budget ``steps.max_steps``."""
+        _save_grid(ts, self.t0, "Simulated")
+        check_step_budget(
+            self.t0, float(ts[-1]), self.steps, "raise it with Simulated(steps=FixedSteps(dt, max_steps=…))."
+        )
 
     def _options(self, ts, names, paths: bool) -> tuple[np.ndarray, dict[str, Any]]:
         """Indices of ``ts`` on the save grid and the keyword arguments of the run (``simulate``'s)."""
@@ -226,6 +263,7 @@ class MomentEquations(AbstractStatisticsModel):
         dt: the Dopri8 step.
         t0: the start time.
         order: Gauss–Hermite nodes per component.
+        max_steps: the step budget (as :class:`~nhsde.FixedSteps`'): a longer span is refused before any run.
     """
 
     y0: Array
@@ -233,8 +271,20 @@ class MomentEquations(AbstractStatisticsModel):
     dt: float = eqx.field(static=True, default=0.01)
     t0: float = eqx.field(static=True, default=0.0)
     order: int = eqx.field(static=True, default=5)
+    max_steps: int = eqx.field(static=True, default=FixedSteps.max_steps)
+
+    def __check_init__(self):
+        _real_state("y0", self.y0)
+        _real_state("cov0", self.cov0)
+
+    def check_times(self, ts) -> None:
+        """Observation times on the save grid from ``t0``, within the step budget ``max_steps``."""
+        _save_grid(ts, self.t0, "MomentEquations")
+        steps = FixedSteps(self.dt, max_steps=self.max_steps)
+        check_step_budget(self.t0, float(ts[-1]), steps, "raise it with MomentEquations(max_steps=…).")
 
     def moments(self, system, ts, names):
+        self.check_times(ts)
         index = _save_grid(ts, self.t0, "MomentEquations")
         ens = normal_approximation(
             system,
@@ -299,12 +349,13 @@ class _Problem(eqx.Module):
 
     system: StochasticSystem
     model: AbstractStatisticsModel
-    observed: Array
-    whiten: Array  # L⁻¹ with Σ_obs = L Lᵀ
+    observed: Array  # the used statistics
+    whiten: Array  # L⁻¹ with Σ_obs = L Lᵀ, of the used statistics
     ts: tuple[float, ...] = eqx.field(static=True)
     names: tuple[str, ...] = eqx.field(static=True)
     vary: tuple[str, ...] = eqx.field(static=True)
     lower: tuple[float | None, ...] = eqx.field(static=True)
+    used: tuple[int, ...] = eqx.field(static=True)  # Observations.used: the statistics of nonzero variance
 
     def theta(self, phi):
         return jnp.stack([p if lo is None else lo + jnp.exp(p) for p, lo in zip(phi, self.lower)])
@@ -315,7 +366,8 @@ class _Problem(eqx.Module):
 
     def statistics(self, theta):
         moments = self.model.moments(self.system_at(theta), self.ts, self.names)
-        return statistic_vector(*moments).astype(self.observed.dtype)
+        s = statistic_vector(*moments).astype(self.observed.dtype)
+        return s if len(self.used) == s.shape[0] else s[np.asarray(self.used)]
 
     def loss(self, phi):
         r = self.whiten @ (self.statistics(self.theta(phi)) - self.observed)
@@ -367,8 +419,10 @@ class FitResult:
     ``jacobian`` is ``G = ∂s/∂θ (S, p)`` at ``values``, ``jacobian_se`` its Monte-Carlo standard errors
     (zero for an exact model) and ``whitening`` ``W = L⁻¹`` with ``Σ_obs = L Lᵀ``;
     :attr:`jacobian_relative_se` combines them.  ``correlations`` says where the correlations of the
-    observed statistics came from (``"paths"``, ``"given"``, ``"model"`` at the estimate, or ``"unknown"``), and
-    ``inflation`` the factor ``max(1, χ²/dof)`` the covariance was multiplied by where they are unknown.
+    observed statistics came from (``"paths"``, ``"given"``, ``"model"`` at the estimate, or ``"unknown"``),
+    ``inflation`` the factor ``max(1, χ²/dof)`` the covariance was multiplied by where they are unknown, and ``note``
+    what the fit left out (:attr:`Observations.note`: statistics of zero variance; "" where nothing).
+    ``jacobian`` and ``whitening`` are over the statistics used (:attr:`Observations.used`).
     """
 
     names: tuple[str, ...]
@@ -385,6 +439,7 @@ class FitResult:
     whitening: np.ndarray | None = None
     correlations: str = "paths"
     inflation: float = 1.0
+    note: str = ""
 
     @property
     def se(self) -> np.ndarray:
@@ -424,7 +479,7 @@ class FitResult:
             "unknown": f"the statistics' correlations across times are unknown: errors inflated by chi2/dof = "
             f"{self.inflation:.3g}, and still too small where the statistics are positively correlated",
         }.get(self.correlations)
-        return "\n".join(rows + ([note] if note else []))
+        return "\n".join(rows + [n for n in (note, self.note) if n])
 
 
 def _vary_bounds(params, vary):
@@ -519,19 +574,24 @@ def estimate(
     max_steps = int(max_steps)
     if max_steps < 1:
         raise ValueError(f"max_steps={max_steps}; must be ≥ 1.")
+    model.check_times(observed.ts)  # before any run: the span and the step budget
 
     dtype = jnp.result_type(float)
-    cov_obs = np.asarray(observed.covariance, np.float64)
+    used = observed.used
+    both = np.ix_(used, used)
+    cov_obs = np.asarray(observed.covariance, np.float64)[both]
+    observed_s = observed.statistics()[used]
     whiten = np.linalg.inv(np.linalg.cholesky(cov_obs))
     problem = _Problem(
         system=system,
         model=model,
-        observed=jnp.asarray(observed.statistics(), dtype),
+        observed=jnp.asarray(observed_s, dtype),
         whiten=jnp.asarray(whiten, dtype),
         ts=tuple(float(t) for t in observed.ts),
         names=observed.names,
         vary=vary,
         lower=lower,
+        used=tuple(int(u) for u in used),
     )
     import optax
 
@@ -556,6 +616,7 @@ def estimate(
 
     g = np.asarray(_statistics_jacobian(theta, problem), np.float64)
     cov_model = np.asarray(model.noise_covariance(problem.system_at(theta), problem.ts, observed.names), np.float64)
+    cov_model = cov_model[both]
     w_g = np.linalg.solve(cov_obs, g)  # Σ_obs⁻¹ G
     fisher = g.T @ w_g
     if not np.all(np.isfinite(fisher)) or np.linalg.cond(fisher) > 1e12:
@@ -565,16 +626,17 @@ def estimate(
         )
     h_inv = np.linalg.inv(fisher)
     cov = h_inv + h_inv @ w_g.T @ cov_model @ w_g @ h_inv
-    r = np.asarray(problem.statistics(theta), np.float64) - observed.statistics()
+    r = np.asarray(problem.statistics(theta), np.float64) - observed_s
     chi2 = float(r @ np.linalg.solve(cov_obs + cov_model, r))
     g_se = np.asarray(model.jacobian_se(problem.system_at(theta), problem.ts, observed.names, vary), np.float64)
+    g_se = g_se[used]
     result = FitResult(
         names=vary,
         values=np.asarray(theta, np.float64),
         cov=0.5 * (cov + cov.T),
         init=theta0,
         chi2=chi2,
-        dof=observed.size - len(vary),
+        dof=len(used) - len(vary),
         steps=steps,
         converged=converged,
         history=np.asarray(history),
@@ -582,6 +644,7 @@ def estimate(
         jacobian_se=g_se,
         whitening=whiten,
         correlations=observed.correlations,
+        note=observed.note,
     )
     if observed.correlations == "unknown":
         sigma = model.statistics_covariance(problem.system_at(theta), problem.ts, observed.names, observed.n_paths)

@@ -26,10 +26,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._options import FixedSteps
 from .._system import StochasticSystem
 from ..fit import FitResult, MomentEquations, Observations, Simulated, estimate
+from ..fit._estimate import check_step_budget
 from ..scenes import get_scene
-from ._config import ConfigError, RunConfig
+from ._config import SOLVER_HELP, ConfigError, RunConfig
 from ._pieces import need_x64
 from ._store import FIT_FORMAT, FORMAT, FORMAT_VERSION, claim, load_run, provenance, seal, write
 
@@ -193,6 +195,9 @@ def fit_data(
     integrates the normal-approximation moment equations with step ``dt`` (exact for linear systems).  ``dt``
     defaults to the largest step of at most 0.01 that divides the spacing of the observation times.
     ``parameters`` are the start values (and the fixed values of the other parameters).
+
+    Refused before any run: observation times before ``t0`` (outside the model's span), a span that steps of
+    ``dt`` cross in more than :class:`~nhsde.FixedSteps`' step budget, and a complex initial state.
     """
     if model not in DATA_MODELS:
         raise ConfigError(f"--model {model!r}: allowed models are {', '.join(DATA_MODELS)}.")
@@ -203,8 +208,28 @@ def fit_data(
         raise ConfigError(f"--set: {e}") from None
     system = built.build()
     observed = read_data(data, system)
-    step = _data_step(observed.ts, t0) if dt is None else dt
-    y0 = jnp.asarray(built.initial_state(), jnp.float64)
+    ts = observed.ts
+    if ts[0] < t0:
+        raise ConfigError(
+            f"--t0 {t0:g}: the data {data} start at t={ts[0]:g}, before it; the model runs from --t0 (the scene's "
+            f"initial state) and gives statistics at times ≥ --t0: give --t0 ≤ {ts[0]:g}."
+        )
+    step = _data_step(ts, t0) if dt is None else dt
+    remedy = (
+        f"give a larger --dt, or the data's times in the scene's time unit (they run from t={ts[0]:.10g} to "
+        f"t={ts[-1]:.10g})."
+    )
+    try:
+        check_step_budget(t0, float(ts[-1]), FixedSteps(step), remedy)
+    except ValueError as e:
+        raise ConfigError(f"--data {data} with --t0 {t0:g}: {e}") from None
+    state = built.initial_state()
+    if np.iscomplexobj(state):
+        raise ConfigError(
+            f"--scene: the initial state of {getattr(scene_cls, '__name__', scene)} is complex "
+            f"({np.asarray(state).tolist()}); the state is real (its imaginary part would be lost)."
+        )
+    y0 = jnp.asarray(state, jnp.float64)
     if model == "simulate":
         fitted = Simulated(y0, jax.random.key(seed), n_paths=n_paths, steps=step, solver=solver, t0=t0)
     else:
@@ -220,7 +245,7 @@ def fit_data_flags(parser: argparse.ArgumentParser):
     parser.add_argument("--model", choices=DATA_MODELS, help="with --data: simulate (default) or moments")
     parser.add_argument("--paths", type=int, help="with --data --model simulate: model paths (default 4096)")
     parser.add_argument("--dt", type=float, help="with --data: the model's step (default ≤ 0.01, dividing the data's)")
-    parser.add_argument("--solver", help="with --data --model simulate: the solver (default euler)")
+    parser.add_argument("--solver", help=f"with --data --model simulate: {SOLVER_HELP}")
     parser.add_argument("--seed", type=int, help="with --data: the model's seed, not the data's (default 1)")
     parser.add_argument("--t0", type=float, help="with --data: the time of the scene's initial state (default 0)")
     parser.add_argument("--max-steps", type=int, help="with --data: the most optimizer steps (default 100)")
@@ -228,13 +253,17 @@ def fit_data_flags(parser: argparse.ArgumentParser):
         "--set", action="append", default=[], metavar="NAME=VALUE", help="with --data: a start or fixed parameter"
     )
     parser.add_argument(
-        "--json", action="store_true", help='with --data: print {name: {"value": v, "se": s}, ...} only'
+        "--json",
+        action="store_true",
+        help='with --data: print {name: {"value": v, "se": s}, ..., "chi2", "dof", "chi2_per_dof", "converged", '
+        '"steps", "note"} only',
     )
 
 
 def fit_data_command(args) -> int:
     """``nhsde fit --data FILE --scene SCENE --fit NAMES``: the fit's table, or with ``--json`` its values and
-    standard errors as JSON."""
+    standard errors as JSON, with ``chi2``, ``dof``, ``chi2_per_dof``, ``converged``, the optimiser's ``steps`` and
+    the ``note`` of what the fit left out ("" where nothing)."""
     if args.config is not None or args.out is not None:
         raise ConfigError("--data cannot be combined with --config or --out; a data fit prints its result.")
     if args.scene is None:
@@ -264,11 +293,18 @@ def fit_data_command(args) -> int:
         args.data, scene, vary, parameters=parameters, **{k: v for k, v in options.items() if v is not None}
     )
     if args.json:
-        print(
-            json.dumps(
-                {n: {"value": float(v), "se": float(s)} for n, v, s in zip(result.names, result.values, result.se)}
-            )
-        )
+        out: dict[str, Any] = {
+            n: {"value": float(v), "se": float(s)} for n, v, s in zip(result.names, result.values, result.se)
+        }
+        out |= {
+            "chi2": float(result.chi2),
+            "dof": int(result.dof),
+            "chi2_per_dof": float(result.chi2) / result.dof if result.dof > 0 else None,
+            "converged": bool(result.converged),
+            "steps": int(result.steps),
+            "note": result.note,
+        }
+        print(json.dumps(out))
         return 0
     layout = "per-path" if observed.from_trajectories else "summary"
     print(f"{args.data}: {layout} data, {observed.n_paths} paths, {len(observed.ts)} times, names {observed.names}")
