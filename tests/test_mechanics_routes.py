@@ -165,29 +165,3 @@ def test_layouts_and_observables_of_each_route():
     system = mech.build(spec, "multipliers", dependent=("x", "y"))
     assert {"energy", "constraint_residual", "lambda_0", "lambda_1"} <= set(system.observable_names())
     assert {"x_dot", "y_dot"} <= set(mech.build(spec, "reduced", dependent=("x", "y")).observable_names())
-
-
-def test_the_unrolled_small_factorisation_is_lapacks_to_rounding():
-    """The mass matrices and Schur complements are factorised entry by entry (fused into the step); the result is
-    LAPACK's Cholesky and solve to 1e-12 in float64, for every size a scene has, under jit and grad too."""
-    from nhsde.mechanics import _small as small
-
-    rng = np.random.default_rng(0)
-    for n in range(1, small.UNROLL_UP_TO + 1):
-        m = rng.standard_normal((n, n))
-        a = jnp.asarray(m @ m.T + n * np.eye(n))
-        b = jnp.asarray(rng.standard_normal((n, 3)))
-        np.testing.assert_allclose(small.cholesky(a), jnp.linalg.cholesky(a), rtol=1e-12, atol=1e-12)
-        np.testing.assert_allclose(jax.jit(small.spd_solve)(a, b), jnp.linalg.solve(a, b), rtol=1e-12, atol=1e-12)
-        np.testing.assert_allclose(small.spd_solve(a, b[:, 0]), jnp.linalg.solve(a, b[:, 0]), rtol=1e-12, atol=1e-12)
-        # derivatives along symmetric directions (a mass matrix stays symmetric; the factorisation reads its lower
-        # triangle, so the gradient with respect to a general matrix differs by where it puts the off-diagonal part)
-        d = jnp.asarray(rng.standard_normal((n, n)))
-        d = d + d.T
-        ours = jax.jvp(lambda a: small.spd_solve(a, b), (a,), (d,))[1]
-        np.testing.assert_allclose(
-            ours, jax.jvp(lambda a: jnp.linalg.solve(a, b), (a,), (d,))[1], rtol=1e-9, atol=1e-11
-        )
-        g = jax.grad(lambda a: jnp.sum(small.spd_solve(a, b)))(a)
-        lapack = jax.grad(lambda a: jnp.sum(jnp.linalg.solve(a, b)))(a)
-        np.testing.assert_allclose(jnp.sum(g * d), jnp.sum(lapack * d), rtol=1e-9)  # reverse mode, the same
