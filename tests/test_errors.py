@@ -76,6 +76,7 @@ def test_unknown_parameter_is_refused():
         (dict(t1=1.0, t0=2.0), ValueError, r"t1=1.0; must be > t0=2.0"),
         (dict(y0=jnp.zeros(3)), ValueError, r"y0 has shape \(3,\); expected \(4,\) or \(64, 4\)"),
         (dict(y0=jnp.array([0.0, jnp.nan, 0, 0])), ValueError, r"y0 contains non-finite"),
+        (dict(y0=[0.0, 1j, 0, 0]), TypeError, r"y0 has dtype complex128; expected real values"),
         (dict(solver="rk4"), ValueError, r"solver='rk4'; allowed: euler, milstein, heun, heun2, sra1, exponential"),
         (dict(solver=diffrax.Tsit5()), ValueError, r"solver='Tsit5': not an SDE solver"),
         (dict(solver=diffrax.ShOULD(0.01)), ValueError, r"solver='ShOULD': a Langevin solver"),

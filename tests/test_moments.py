@@ -298,6 +298,18 @@ def _free_particle():
             r"'omega_x' is not a state component",
         ),
         (
+            lambda: normal_approximation(BallOnVibratingPlane().build(), [0, 1j, 0, 0], t1=1.0, dt=0.1),
+            TypeError,
+            r"y0 has dtype complex128; expected real values",
+        ),
+        (
+            lambda: normal_approximation(
+                BallOnVibratingPlane().build(), jnp.zeros(4), cov0=np.eye(4) * (1 + 1j), t1=1.0, dt=0.1
+            ),
+            TypeError,
+            r"cov0 has dtype complex\d+; expected real values",
+        ),
+        (
             lambda: normal_approximation(
                 BallOnVibratingPlane().build(), jnp.zeros(4), t1=1.0, dt=0.1, save=nhsde.Save(paths=True)
             ),

@@ -9,7 +9,6 @@ import signal
 import subprocess
 import sys
 import threading
-import time
 import warnings
 
 import equinox as eqx
@@ -149,9 +148,10 @@ WITH_DEFAULT_SIGINT = (
 )
 
 
-def _started_solving(command, tmp_path) -> tuple[subprocess.Popen, list[str]]:
+def _started_solving(command, tmp_path) -> tuple[subprocess.Popen, list[str], threading.Thread]:
     """Start ``command`` with SIGINT at its default disposition; return once its progress meter reports the compiled
-    solve running (diffrax's tqdm bar, drawn from inside the compiled loop), with the stderr read so far."""
+    solve running (diffrax's tqdm bar, drawn from inside the compiled loop), with the stderr read so far and the
+    thread that reads it (to the end of the child's stderr)."""
     child = subprocess.Popen(
         [sys.executable, "-c", WITH_DEFAULT_SIGINT, *command],
         stdout=subprocess.PIPE,
@@ -170,22 +170,23 @@ def _started_solving(command, tmp_path) -> tuple[subprocess.Popen, list[str]]:
                 ready.set()
         ready.set()  # the child ended: the caller sees it in poll()
 
-    threading.Thread(target=read, daemon=True).start()
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
     if not ready.wait(READY_WITHIN_S):
         child.kill()
         raise AssertionError(f"no progress within {READY_WITHIN_S} s (a hang bound): {''.join(err)[-2000:]}")
     assert child.poll() is None, "".join(err)
-    return child, err
+    return child, err, reader
 
 
 def test_ctrl_c_stops_a_long_cli_run_within_seconds(tmp_path):
     """A `nhsde simulate` estimated at hours used to ignore SIGINT until the solve ended."""
     command = [sys.executable, "-m", "nhsde.runs", "simulate", "ball-on-vibrating-plane", "--progress"]
     command += ["--paths", "4096", "--t1", "100000", "--dt", "0.01"]
-    child, err = _started_solving(command, tmp_path)
+    child, err, reader = _started_solving(command, tmp_path)
     child.send_signal(signal.SIGINT)
     child.wait(timeout=STOPPED_WITHIN_S)
-    time.sleep(0.1)  # the reader thread's last chunk
+    reader.join(timeout=STOPPED_WITHIN_S)  # the child's last words
     text = "".join(err)
     assert child.returncode == 130, text
     assert text.strip().splitlines()[-1].startswith("nhsde simulate: interrupted"), text
@@ -202,7 +203,7 @@ def test_ctrl_c_stops_a_long_solve_from_python(tmp_path):
         "except KeyboardInterrupt:\n"
         "    print('interrupted', flush=True)\n"
     )
-    child, err = _started_solving([sys.executable, "-c", script], tmp_path)
+    child, err, _ = _started_solving([sys.executable, "-c", script], tmp_path)
     child.send_signal(signal.SIGINT)
     out, _ = child.communicate(timeout=STOPPED_WITHIN_S)
     assert out.decode().strip() == "interrupted", "".join(err)

@@ -22,6 +22,17 @@ def is_concrete(*trees) -> bool:
     return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(trees))
 
 
+def real_state(name: str, y):
+    """``y`` as a floating-point array (integers and booleans in the default float); complex values are refused
+    naming ``name`` (a cast would drop their imaginary parts silently)."""
+    if not isinstance(y, jax.Array):
+        y = np.asarray(y) if is_concrete(y) else jnp.asarray(y)  # (a list may hold tracers)
+    if jnp.issubdtype(y.dtype, jnp.complexfloating):
+        raise TypeError(f"{name} has dtype {y.dtype}; expected real values (float32 or float64).")
+    y = y if isinstance(y, jax.Array) else jax.device_put(y)  # (jnp.asarray compiles a program)
+    return y if jnp.issubdtype(y.dtype, jnp.floating) else y.astype(jnp.result_type(float))
+
+
 def under_trace() -> bool:
     """True while a JAX transformation traces the caller: a compiled helper called now would return tracers."""
     return isinstance(jnp.asarray(0.0), jax.core.Tracer)

@@ -246,17 +246,23 @@ def checked_on_host():
         yield
 
 
+def concrete_primal(tree):
+    """``tree`` with its primal values where they are known on the host (concrete leaves, or tracers of
+    ``jax.jvp`` / ``jax.jacfwd`` over concrete values, their tangents dropped); ``None`` under ``jit`` or ``vmap``."""
+    # stop_gradient of a forward-mode tracer over a concrete value is that value
+    primal = jax.tree_util.tree_map(lambda x: x if is_concrete(x) else jax.lax.stop_gradient(x), tree)
+    return primal if is_concrete(primal) else None
+
+
 def differentiated_nonzero(params) -> bool:
-    """Whether the primal values of ``params`` are known on the host (concrete, or tracers of ``jax.jvp`` /
-    ``jax.jacfwd`` over concrete values) and every leaf that carries a tangent is nonzero everywhere: then no
-    :func:`sqrt_intensity` of a parameter is differentiated at 0, the one case its run-time check catches."""
-    leaves = jax.tree_util.tree_leaves(params)
-    traced = [x for x in leaves if not is_concrete(x)]
-    # stop_gradient of a forward-mode tracer over a concrete value is that value (the tangent dropped)
-    primals = [jax.lax.stop_gradient(x) for x in traced]
-    if not is_concrete(primals):
+    """Whether the primal values of ``params`` are known on the host (:func:`concrete_primal`) and every leaf that
+    carries a tangent is nonzero everywhere: then no :func:`sqrt_intensity` of a parameter is differentiated at 0,
+    the one case its run-time check catches."""
+    primal = concrete_primal(params)
+    if primal is None:
         return False  # under jit or vmap: the values are not known here
-    return all(bool(np.all(np.asarray(x) != 0)) for x in primals)
+    pairs = zip(jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(primal))
+    return all(bool(np.all(np.asarray(p) != 0)) for x, p in pairs if not is_concrete(x))
 
 
 _SINGULAR = (

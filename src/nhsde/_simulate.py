@@ -50,9 +50,16 @@ from ._ensemble import (
     scale_cause,
 )
 from ._interrupt import POLL_ABOVE, POLL_STEPS, poll, watching
-from ._misc import cast_floats, check_key, check_number, is_concrete, under_trace
+from ._misc import cast_floats, check_key, check_number, is_concrete, real_state, under_trace
 from ._options import AbstractSteps, AdaptiveSteps, Batching, FixedSteps, RunOptions, run_options
-from ._params import check_ranges, checked_on_host, differentiated_nonzero, parameters_checked_on_host, validated
+from ._params import (
+    check_ranges,
+    checked_on_host,
+    concrete_primal,
+    differentiated_nonzero,
+    parameters_checked_on_host,
+    validated,
+)
 from ._solvers import SOLVERS, ExponentialEuler, SolverNeeds, solver_needs
 from ._system import StochasticSystem
 from ._weak import WeakIncrement
@@ -471,11 +478,14 @@ def _check_linear_stability(
 
     Euler–Maruyama on ``u̇ = −2εu`` multiplies by ``1 − 2εdt`` per step: from ``ε·dt = 1`` on the paths
     no longer decay although the friction damps them; known before the run from
-    ``StochasticSystem.linear_drift``.  Traced parameters are checked inside the run with the
-    same cause and fix (:class:`~nhsde.SimulationResult`).
+    ``StochasticSystem.linear_drift``.  Parameters known only in the run (under ``jit``, ``grad``, ``vmap``) are
+    checked inside it with the same cause and fix (:class:`~nhsde.SimulationResult`); forward-mode tangents over
+    concrete values are checked here, on their primal values.
     """
-    if not _checks_linear(system, needs) or not is_concrete(system.params):
+    primal = concrete_primal(system.params)
+    if not _checks_linear(system, needs) or primal is None:
         return
+    system = eqx.tree_at(lambda s: s.params, system, primal)
     work = _work_dtype(dtype)
     # concrete parameters: known now, also under an outer jit (where the helper is evaluated op by op)
     with jax.ensure_compile_time_eval() if under_trace() else contextlib.nullcontext():
@@ -510,11 +520,12 @@ def stable_step(system: StochasticSystem, solver: str | dfx.AbstractSolver, dt: 
     """Whether ``solver`` damps every mode of the declared linear drift that the exact flow damps, at step ``dt``
     (strictly inside its stability limit); ``True`` where no linear drift is declared or the parameters are traced."""
     needs = solver_needs(solver, system)
-    if not _checks_linear(system, needs) or not is_concrete(system.params):
+    primal = concrete_primal(system.params)
+    if not _checks_linear(system, needs) or primal is None:
         return True
     work = jnp.result_type(float)  # float64 where enabled
     with jax.ensure_compile_time_eval() if under_trace() else contextlib.nullcontext():
-        return not bool(_linear_modes(system.linear_drift, needs, system.params, np.asarray(dt, work))[0])
+        return not bool(_linear_modes(system.linear_drift, needs, primal, np.asarray(dt, work))[0])
 
 
 def _variance_message(system: StochasticSystem, needs: SolverNeeds, dt: float, off: float, work) -> str:
@@ -560,9 +571,7 @@ def _residuals_too_large(steps_per_save, chunk, state_dim, dtype) -> bool:
 
 
 def _check_y0(system, y0, n_paths):
-    y0 = y0 if isinstance(y0, jax.Array) else jax.device_put(np.asarray(y0))  # (jnp.asarray compiles a program)
-    if not jnp.issubdtype(y0.dtype, jnp.floating):
-        y0 = y0.astype(jnp.result_type(float))
+    y0 = real_state("y0", y0)
     if jnp.finfo(y0.dtype).bits < 32:
         raise TypeError(
             f"y0 has dtype {y0.dtype}; simulate computes in the state's precision, and fourth moments overflow "
@@ -756,8 +765,11 @@ def simulate_run(
         devices=devices,
         checkpoint=bool(checkpoint),
         raise_on_failure=on_failure == "raise",
-        # in `checked_on_host` the caller checked the step's stability on the host (`_check_linear_stability`)
-        traced_stability=_checks_linear(system, needs) and not is_concrete(system.params) and not outcome_by_caller,
+        # checked before the run where the primal values are known (`_check_linear_stability`), and in
+        # `checked_on_host` by the caller on the host
+        traced_stability=_checks_linear(system, needs)
+        and concrete_primal(system.params) is None
+        and not outcome_by_caller,
         poll=n_paths * n_steps * system.state_dim > POLL_ABOVE,
         # forward mode of concrete values (the estimators' tangents): the primal values were checked when built
         params_checked=is_concrete(system.params) or _FORWARD_ONLY.get() or parameters_checked_on_host(),

@@ -24,10 +24,21 @@ for small ``εh`` and ``≈ σ²/(4ε²h)`` (too small) once ``εh ≫ 1``.
 ``e^{Ah}`` and ``hφ₁(Ah)`` come from one matrix exponential of
 ``[[A h, h I], [0, 0]]``; they depend on the parameters only, so under ``vmap``
 over paths they are computed once per step.
+
+Every solver :func:`solver_needs` returns differentiates in forward and reverse mode alike (``jax.jacfwd``,
+``jax.grad``, the estimators' ``wrt``): diffrax's explicit Runge–Kutta stages run as a scan of the stage count
+(``scan_kind='bounded'``; ``'lax'`` is a while loop, forward mode only, and the default ``'checkpointed'`` reverse
+mode only), a stochastic Runge–Kutta method's as a ``lax.scan`` (``'lax'``); and a step whose result is not
+finite (or not successful), which ``simulate`` discards with its path, is linearised at the origin instead of at
+its state, so that in reverse mode the discarded path's zero cotangent meets finite partial derivatives, not
+overflowed ones (``0·∞ = nan``: ``dx = a x² dt`` from ``x = 10`` overflows ``∂x₁/∂a = h x²``).  The step's value,
+and its derivative wherever it succeeds, are unchanged.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 from collections.abc import Callable
 from typing import ClassVar, Literal
 
@@ -35,6 +46,7 @@ import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.scipy.linalg import expm
 
 from ._system import StochasticSystem
@@ -107,7 +119,7 @@ SOLVERS: dict[str, Callable[[], dfx.AbstractSolver]] = {
     "euler": dfx.Euler,
     "milstein": _Milstein,
     "heun": dfx.EulerHeun,
-    "heun2": lambda: dfx.Heun(scan_kind="lax"),
+    "heun2": lambda: dfx.Heun(scan_kind="bounded"),
     "sra1": lambda: dfx.SRA1(scan_kind="lax"),
     "exponential": ExponentialEuler,
     "weak2": PlatenWeak2,
@@ -116,6 +128,95 @@ SOLVERS: dict[str, Callable[[], dfx.AbstractSolver]] = {
 (Stratonovich, Euler in the drift); Heun (Stratonovich, second order in the drift); SRA1 (additive
 noise, strong order 1.5); exponential Euler–Maruyama (exact in the linear friction); Platen's explicit weak
 order-2.0 scheme for any noise, with three-point increments (``PlatenWeak2``)."""
+
+
+def _both_modes(solver: dfx.AbstractSolver) -> dfx.AbstractSolver:
+    """``solver`` with its stage loop a scan of static length, which ``jax.jvp`` and ``jax.vjp`` both differentiate
+    (module): explicit Runge–Kutta stages ``scan_kind='bounded'``, stochastic Runge–Kutta stages ``'lax'``."""
+    if isinstance(solver, dfx.AbstractSRK) and solver.scan_kind != "lax":
+        return dataclasses.replace(solver, scan_kind="lax")
+    if isinstance(solver, dfx.AbstractRungeKutta) and solver.scan_kind != "bounded":
+        return dataclasses.replace(solver, scan_kind="bounded")
+    return solver
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _finite_step(step: Callable, inputs):
+    """``step(*inputs)``: a solver step's ``(y1, error, dense, state, result)`` from ``inputs = ((y0, args),
+    hoisted)`` (their arrays), differentiated where it succeeds (:func:`_finite_step_jvp`)."""
+    return step(*inputs)
+
+
+def _is_zero(t) -> bool:
+    return isinstance(t, jax.custom_derivatives.SymbolicZero)
+
+
+def _finite_step_jvp(step: Callable, primals, tangents):
+    """The step, and its tangent at ``y0`` where its ``y1`` is finite and its result successful, else at the origin
+    ``y0 = 0``: such a step's value is discarded (a failed path keeps its last state), and so its tangent, but in
+    reverse mode its zero cotangent still meets the partial derivatives at the linearisation point, where at ``y0``
+    they overflow (``0·∞ = nan``), and the origin's are finite for a drift and diffusion finite there."""
+    (inputs,), (dots,) = primals, tangents
+    out = step(*inputs)
+    y1, result = out[0], out[4]
+    ok = jnp.all(jnp.array([jnp.all(jnp.isfinite(a)) for a in jax.tree.leaves(y1)])) & (
+        result == dfx.RESULTS.successful
+    )
+    (y0, args), hoisted = inputs
+    y0 = jax.tree.map(lambda v: jnp.where(ok, v, jnp.zeros_like(v)), y0)  # the double where's first
+    leaves, tree = jax.tree.flatten(((y0, args), hoisted))
+    dots = jax.tree.leaves(dots, is_leaf=_is_zero)
+    live = [i for i, t in enumerate(dots) if not _is_zero(t) and t.dtype != jax.dtypes.float0]
+
+    def at(*values):
+        full = list(leaves)
+        for i, v in zip(live, values, strict=True):
+            full[i] = v
+        return step(*jax.tree.unflatten(tree, full))
+
+    if not live:
+        return out, jax.tree.map(_zero_tangent, out)
+    _, out_dot = jax.jvp(at, tuple(leaves[i] for i in live), tuple(dots[i] for i in live))
+    return out, out_dot
+
+
+_finite_step.defjvp(_finite_step_jvp, symbolic_zeros=True)
+
+
+def _zero_tangent(x):
+    x = jnp.asarray(x)
+    return jnp.zeros_like(x) if jnp.issubdtype(x.dtype, jnp.inexact) else np.zeros(x.shape, jax.dtypes.float0)
+
+
+@functools.cache
+def _finite_class(cls: type) -> type:
+    """``cls`` with its ``step`` differentiated only where it succeeds (:func:`_finite_step`): a subclass, so the
+    solver keeps its type, name and fields."""
+
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        dynamic, static = eqx.partition((y0, args), eqx.is_array)
+
+        def plain(inputs):
+            y, a = eqx.combine(inputs, static)
+            return cls.step(self, terms, t0, t1, y, a, solver_state, made_jump)
+
+        # values the step closes over (the increments, the time, a closure's parameters) become explicit inputs,
+        # so that the rule sees every value it is differentiated in
+        converted, hoisted = jax.closure_convert(plain, dynamic)
+        return _finite_step(lambda inputs, extra: converted(inputs, *extra), (dynamic, hoisted))
+
+    names = {"__module__": cls.__module__, "__qualname__": cls.__qualname__, "__doc__": cls.__doc__}
+    return type(cls.__name__, (cls,), {"step": step, "_finite_tangents": True, **names})
+
+
+def _finite_tangents(solver: dfx.AbstractSolver) -> dfx.AbstractSolver:
+    """``solver`` (same fields) as an instance of :func:`_finite_class` of its type."""
+    if getattr(type(solver), "_finite_tangents", False):
+        return solver
+    guarded = object.__new__(_finite_class(type(solver)))
+    for field in dataclasses.fields(solver):
+        object.__setattr__(guarded, field.name, getattr(solver, field.name))
+    return guarded
 
 
 class SolverNeeds(eqx.Module):
@@ -192,4 +293,5 @@ def solver_needs(solver: str | dfx.AbstractSolver, system: StochasticSystem) -> 
             )
         solver = ExponentialEuler(system.linear_drift)
     embedded = isinstance(solver, dfx.AbstractSRK) and solver.tableau.b_error is not None
+    solver = _finite_tangents(_both_modes(solver))
     return SolverNeeds(solver, name, interpretation, additive_only, _levy_area(solver), embedded)

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
 from ._brownian import AbstractDriver, Wiener
+from ._misc import real_state
 
 __all__ = ["ROLES", "ItoStratonovichDrift", "StateLayout", "StochasticSystem"]
 
@@ -176,9 +177,7 @@ class StochasticSystem(eqx.Module):
 
     def state(self, y, name: str = "y0"):
         """``y`` as one floating-point state of this system; a wrong shape raises naming ``name``."""
-        y = jnp.asarray(y)
-        if not jnp.issubdtype(y.dtype, jnp.floating):
-            y = y.astype(jnp.result_type(float))
+        y = real_state(name, y)
         if y.shape != (self.state_dim,):
             raise ValueError(
                 f"{name} has shape {y.shape}; expected ({self.state_dim},) for the state {self.layout.names}."

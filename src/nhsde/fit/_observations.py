@@ -808,7 +808,7 @@ class Observations(eqx.Module):
         statistics' full covariance over ``statistic × statistic2`` (:meth:`from_statistics`).  Any other
         dataset is read as the table ``ds.to_dataframe()`` (:meth:`from_dataframe`), e.g. variables ``x``,
         ``u_x`` over ``(path, t)``.
-        A run file starts at its deterministic initial state: select the later times, ``ds.isel(time=slice(1, None))``.
+        A run file starts at its deterministic initial state, whose statistics of zero variance a fit leaves out.
 
         Arguments:
             ds: the dataset.

@@ -134,6 +134,7 @@ def _progress_meter(args):
     import diffrax as dfx
 
     show = sys.stderr.isatty() if args.progress is None else args.progress
+    args.bar_drawn = show  # a bar cut short leaves stderr mid-line: the command's message starts a new one
     return dfx.TqdmProgressMeter() if show else None
 
 
@@ -797,7 +798,8 @@ def main(argv=None) -> int:
         message, status = _runtime_message(e), 1
     except KeyboardInterrupt:
         message, status = "interrupted; a run file keeps the pieces written (the same command resumes it)", 130
-    print(f"nhsde {args.command}: {' '.join(message.split())}", file=sys.stderr)
+    new_line = "\n" if getattr(args, "bar_drawn", False) else ""
+    print(f"{new_line}nhsde {args.command}: {' '.join(message.split())}", file=sys.stderr)
     return status
 
 

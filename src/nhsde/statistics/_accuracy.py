@@ -48,6 +48,9 @@ import math
 from collections.abc import Sequence
 
 import diffrax as dfx
+import jax
+import jax.numpy as jnp
+import numpy as np
 
 from .._brownian import BLOCK
 from .._ensemble import Save, SimulationError
@@ -136,6 +139,22 @@ def native_solvers(system: StochasticSystem) -> tuple[str, ...]:
     return ("heun2",) if system.interpretation == "stratonovich" and not system.additive_noise else ()
 
 
+def _below_resolution(rmse: float, relative_rmse, resolution: float, statistic, y0) -> str:
+    """Why ``rmse`` is below the ``resolution`` of the state's precision (the first pilot's, :func:`to_accuracy`),
+    or ``''``."""
+    if rmse >= resolution:
+        return ""
+    dtype = np.asarray(y0).dtype  # the state's precision, as simulate takes it
+    dtype = jax.dtypes.canonicalize_dtype(dtype if np.issubdtype(dtype, np.floating) else jnp.result_type(float))
+    named = f"rmse={rmse:.3g}" if relative_rmse is None else f"relative_rmse={relative_rmse} (rmse={rmse:.3g})"
+    return (
+        f"{named} is below {resolution:.3g}, what {dtype} resolves of {statistic} (the statistic's change when every "
+        f"path's value moves by one unit in the last place, {np.finfo(dtype).eps:.3g} relative): no number of paths "
+        "estimates it more finely, and the standard error does not show rounding the paths share; raise the target "
+        f"to ≥ {resolution:.3g}, or compute in float64 (y0 and parameters as float64, jax_enable_x64)."
+    )
+
+
 def _is_euler(solver) -> bool:
     return (isinstance(solver, str) and solver == "euler") or type(solver) is dfx.Euler
 
@@ -213,7 +232,13 @@ def to_accuracy(
 
     - ``statistic``: ``('mean', name)`` or ``('cov', name_a, name_b)`` at ``t1``; the names
       must be saved (``save.names``, default the statistic's names, of the system's observables).
-    - ``rmse``: the absolute target, or ``relative_rmse``: relative to the pilot's ``|value|``.
+    - ``rmse``: the absolute target, or ``relative_rmse``: relative to the pilot's ``|value|``.  A target below what
+      the state's precision resolves is refused (``ValueError``): below ``eps Σ_i |∂Ŝ/∂z_i| |z_i|`` on the first
+      pilot's finest paths, the statistic's change when every path's saved value ``z_i`` moves by one unit in the
+      last place (``eps`` of ``y0``'s dtype: 1.2e-7 in float32, 2.2e-16 in float64; for a mean ``eps·mean|z|``).
+      Rounding the paths share does not average out and no standard error shows it (float32 paths of
+      ``dx = 10⁻⁸ dt`` from 1 all stay at 1: standard error 0, error 10⁻⁸), so a standard error of 0 is reported as
+      meeting only a target the precision resolves.
     - ``dt`` (or ``steps=FixedSteps(dt)``): the coarsest step ``h₀`` considered (default
       ``(t1 − t0)/4``, halved until the first pilot's solver is inside its stability limit on the system's
       declared friction (another solver unstable there does not apply), and again while the pilot's paths fail
@@ -366,6 +391,10 @@ def to_accuracy(
             )
         assert relative_rmse is not None
         rmse = relative_rmse * abs(value)
+    floor = _below_resolution(rmse, relative_rmse, first.resolution, statistic, y0)
+    retry = own_step and pricing.steps0 < 2**MAX_PILOT_HALVINGS
+    if floor and not retry:  # (with a retry, a pilot grown huge can still be priced again from half the step)
+        raise ValueError(floor)
     pricing.rmse = rmse
     alternatives = price(estimators, pricing, first_solver, explore)
     alternatives += [AccuracyAlternative(f"any, {note.split(':', 1)[0]}", math.inf, note=note) for note in skipped]
@@ -394,7 +423,6 @@ def to_accuracy(
         ]
     key_of = (lambda a: a.seconds if math.isfinite(a.seconds) else math.inf) if timed else (lambda a: a.cost)
     ranked = sorted((a for a in alternatives if a.applies and math.isfinite(key_of(a))), key=key_of)
-    retry = own_step and pricing.steps0 < 2**MAX_PILOT_HALVINGS
 
     def from_half_step(failure: str, work: float) -> AccuracyResult:
         """Every alternative priced again from half the step (a pilot path that grew huge without overflowing
@@ -415,8 +443,12 @@ def to_accuracy(
     if not ranked:
         if retry:
             return from_half_step("no alternative reached the target", pilot_work)
+        if floor:
+            raise ValueError(floor)
         notes = "\n".join(f"  {a.name}: {a.note or 'no plan'}" for a in alternatives)
         raise ValueError(f"rmse={rmse:.3g}: no alternative can reach it from dt={h0}:\n{notes}\nthe pilot:\n{pilots}")
+    if floor:  # never run to a target the precision does not resolve: its standard error could read 0
+        raise ValueError(floor)
     fitting = [a for a in ranked if a.memory <= memory_limit()]
     if not fitting:
         if retry:

@@ -74,10 +74,9 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from .._ensemble import Save
-from .._misc import cast_floats, check_key, check_number
+from .._misc import cast_floats, check_key
 from .._options import AbstractSteps, Batching, run_options
 from .._params import validated
-from .._simulate import MIN_PATHS
 from .._solvers import solver_needs
 from .._system import StateLayout, StochasticSystem
 from ..noise import driver_intensity
@@ -86,6 +85,7 @@ from ._estimate import AbstractEstimate, AbstractStatistic, Cost, Derivatives, M
 from ._moments import GaussianClosure, integrate_moments
 from ._paths import (
     array_module,
+    checked_paths,
     on_device,
     paired_moments,
     paired_sensitivities,
@@ -387,9 +387,7 @@ def control_variate(
     if not isinstance(system, StochasticSystem):
         raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
     wrt = () if wrt is None else check_wrt(system, wrt)
-    n_paths = check_number("n_paths", n_paths, integer=True)
-    if n_paths < MIN_PATHS:
-        raise ValueError(f"n_paths={n_paths}; must be ≥ {MIN_PATHS} (a covariance and its standard error need 4).")
+    (n_paths,) = checked_paths("n_paths", n_paths)
     options = run_options(
         "control_variate", t0=t0, t1=t1, dt=dt, steps=steps, solver=solver, batching=batching, brownian_dt=True
     )

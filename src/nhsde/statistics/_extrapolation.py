@@ -34,6 +34,7 @@ from .._weak import PlatenWeak2
 from ._cost import check_memory, path_bytes, peak_bytes
 from ._estimate import AbstractEstimate, AbstractStatistic, Cost, Derivatives, MonteCarloEstimate, Stopwatch, Values
 from ._paths import (
+    checked_paths,
     coupled_paths,
     coupling_solver,
     on_device,
@@ -109,7 +110,7 @@ def extrapolate(
     h, n_steps = run.dt, run.n_steps
     save = paths_save(save, n_steps, system.layout.names)
     assert save.names is not None and save.n is not None
-    n_paths = check_number("n_paths", n_paths, integer=True)
+    (n_paths,) = checked_paths("n_paths", n_paths)
     solves = 4 if antithetic else 2
     check_memory(
         f"n_paths={n_paths}",

@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .._misc import check_number, is_concrete
+from .._misc import check_number, is_concrete, real_state
 from .._params import validated
 from .._system import StochasticSystem
 from ..noise import driver_intensity
@@ -163,7 +163,7 @@ def gaussian_closure(system: StochasticSystem, dtype, order: int) -> GaussianClo
 def initial_moments(system, y0, cov0):
     d = system.state_dim
     y0 = system.state(y0)
-    cov0 = jnp.zeros((d, d), y0.dtype) if cov0 is None else jnp.asarray(cov0).astype(y0.dtype)
+    cov0 = jnp.zeros((d, d), y0.dtype) if cov0 is None else real_state("cov0", cov0).astype(y0.dtype)
     if cov0.shape != (d, d):
         raise ValueError(f"cov0 has shape {cov0.shape}; expected ({d}, {d}).")
     if is_concrete(cov0):

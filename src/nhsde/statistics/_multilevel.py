@@ -58,6 +58,7 @@ from ._cost import MAX_LEVELS, allocate, check_memory, level_cost, level_piece, 
 from ._estimate import AbstractEstimate, AbstractStatistic, Cost, Derivatives, Stopwatch, Values, as_statistic
 from ._paths import (
     array_module,
+    checked_paths,
     coupled_paths,
     coupling_solver,
     on_device,
@@ -331,9 +332,7 @@ def multilevel_monte_carlo(
                 f"levels (e.g. n_paths=({n_paths!r},) * 3 for three levels of that many samples each), or give "
                 "rmse=… to choose levels and counts."
             )
-        counts = [check_number("n_paths", n, integer=True) for n in n_paths]
-        if not counts or min(counts) < 1:
-            raise ValueError(f"n_paths={n_paths!r}; expected one count ≥ 1 per level, (N_0, …, N_L).")
+        counts = list(checked_paths("n_paths", n_paths, per_level=True))
         levels.check_memory(counts, f"n_paths={tuple(counts)}", "take fewer paths, or average runs of several keys.")
         for level, n in enumerate(counts):
             levels.grow(level, n)

@@ -20,6 +20,10 @@ every scrambling are the contiguous paths ``NR … 2NR − 1``), its direction n
 the finest level allowed, and the bridge depth ``log₂ n_ℓ`` is data.  Per-point values are reduced on the host
 into per-scrambling sums, so memory does not grow with ``N_ℓ``.  Plain randomised quasi-Monte Carlo,
 :func:`quasi_monte_carlo`, is the one level ``ℓ = 0`` at ``dt``.
+
+With the counts fixed (``n_points``; :func:`quasi_monte_carlo`'s ``n_paths``) the estimate is a function of the
+system's parameters that ``jax.jit``, ``jax.grad``, ``jax.jacfwd`` and ``jax.vmap`` transform, as
+:func:`~nhsde.statistics.multilevel_monte_carlo`'s: the sums are then reduced in the trace, in the state's precision.
 """
 
 from __future__ import annotations
@@ -45,7 +49,7 @@ from ._control_variate import LinearisedControl, PerEntry
 from ._cost import MAX_LEVELS, level_cost
 from ._estimate import AbstractStatistic, Derivatives, Stopwatch, as_statistic
 from ._multilevel import MultilevelEstimate, bias_estimate
-from ._paths import KEY_PATHS, coupled_paths, on_device, paths_save, roles_of, safe_sqrt
+from ._paths import KEY_PATHS, array_module, coupled_paths, on_device, paths_save, roles_of, safe_sqrt
 from ._qmc import (
     MAX_DIMENSION,
     QuasiMonteCarloEstimate,
@@ -75,7 +79,9 @@ def _pick(statistic: AbstractStatistic, names: tuple[str, ...], mean, cov) -> An
 class _QmcLevels:
     """The levels' runs, reduced per scrambling into sums of the values and of their outer products; with
     ``antithetic``, each point's value is the average over its path and the reflected one (``W → −W``, the
-    point set ``1 − u``), and its outer product the average of the two paths' (so covariances stay unbiased)."""
+    point set ``1 − u``), and its outer product the average of the two paths' (so covariances stay unbiased).
+    Concrete values are reduced on the host in float64; under JAX transformations (``jit``, ``grad``, ``vmap``) in
+    the trace, in the state's precision, as the Monte-Carlo estimators' (:func:`._paths.array_module`)."""
 
     def __init__(
         self,
@@ -100,7 +106,7 @@ class _QmcLevels:
         self.points: list[int] = []  # N_ℓ per scrambling
         # level → per solve: sums of the values (R, n, k) and of their outer products (R, n, k, k); with wrt, of
         # their tangents (p, R, n, k) and of the tangents of the outer products (p, R, n, k, k)
-        self.sums: list[list[list[np.ndarray]]] = []
+        self.sums: list[list[list[Any]]] = []
         self.drivers: list[ScrambledSobol] = []
 
     def cost(self, level: int) -> float:
@@ -150,28 +156,30 @@ class _QmcLevels:
                 for a, sums in enumerate(self._reduced(paths, tangents, len(dts))):
                     slot = index * len(dts) + a
                     if slot < len(self.sums[level]):
-                        for total, part in zip(self.sums[level][slot], sums, strict=True):
-                            total += part
+                        totals = self.sums[level][slot]
+                        self.sums[level][slot] = [total + part for total, part in zip(totals, sums, strict=True)]
                     else:
                         self.sums[level].append(sums)
                 first += size
         self.points[level] = n_points
 
-    def _reduced(self, paths, tangents, n_dts: int) -> list[list[np.ndarray]]:
+    def _reduced(self, paths, tangents, n_dts: int) -> list[list[Any]]:
         """Per solve step of ``coupled_paths``' sets, the per-scrambling sums of the values and of their outer
         products (with ``wrt``, of their tangents), a point's value the average over it and its reflection."""
         r, pairs = self.replicates, 2 if self.antithetic else 1
+        xp = array_module(paths, tangents)
+        host = (lambda x: np.asarray(x, np.float64)) if xp is np else (lambda x: x)
         out = []
         for a in range(n_dts):
             sums = None
             for i in range(a, len(paths), n_dts):  # the solve at dts[a], then its reflection's
                 # path (b·R + r)·BLOCK + lane is point b·BLOCK + lane of scrambling r
-                z = np.asarray(paths[i], np.float64).reshape(-1, r, BLOCK, *paths[i].shape[1:])
-                parts = [z.sum(axis=(0, 2)) / pairs, np.einsum("brlni,brlnj->rnij", z, z) / pairs]
+                z = host(paths[i]).reshape(-1, r, BLOCK, *paths[i].shape[1:])
+                parts = [z.sum(axis=(0, 2)) / pairs, xp.einsum("brlni,brlnj->rnij", z, z) / pairs]
                 if self.wrt:
-                    t = np.asarray(tangents[i], np.float64).reshape(len(self.wrt), *z.shape)
-                    tz = np.einsum("pbrlni,brlnj->prnij", t, z) / pairs
-                    parts += [t.sum(axis=(1, 3)) / pairs, tz + np.swapaxes(tz, -1, -2)]
+                    t = host(tangents[i]).reshape(len(self.wrt), *z.shape)
+                    tz = xp.einsum("pbrlni,brlnj->prnij", t, z) / pairs
+                    parts += [t.sum(axis=(1, 3)) / pairs, tz + xp.swapaxes(tz, -1, -2)]
                 sums = parts if sums is None else [x + y for x, y in zip(sums, parts, strict=True)]
             assert sums is not None
             out.append(sums)
@@ -191,9 +199,10 @@ class _QmcLevels:
         term's mean and covariance."""
         n = self.points[level]
         per_solve = [[total / n for total in sums] for sums in self.sums[level]]
+        xp = array_module(per_solve)
         means, seconds = ([p[i] for p in per_solve] for i in (0, 1))
         per_mean = sum(w * m for w, m in zip(weights, means))
-        per_cov = sum(w * (s - np.einsum("rni,rnj->rnij", m, m)) for w, m, s in zip(cov_weights, means, seconds))
+        per_cov = sum(w * (s - xp.einsum("rni,rnj->rnij", m, m)) for w, m, s in zip(cov_weights, means, seconds))
         return per_solve, per_mean, per_cov
 
     def coefficients(self):
@@ -215,12 +224,13 @@ class _QmcLevels:
         r = self.replicates
         weights, cov_weights = self._weights(level)
         per_solve, per_mean, per_cov = self._per_replicate(level, weights, cov_weights)
+        xp = array_module(per_solve, weights, cov_weights)
         combined = [combine_replicates(_host(p[0]), _host(p[1])) for p in per_solve]
         mean = sum(w * c[0] for w, c in zip(weights, combined))
         cov = sum(w * c[1] for w, c in zip(cov_weights, combined))
         dof = r - 2 if self.control is not None and level == 0 else r - 1
-        out = [mean, cov, np.var(per_mean, axis=0, ddof=1) * (r - 1) / dof / r]
-        out.append(np.var(per_cov, axis=0, ddof=1) * (r - 1) / dof / r)
+        out = [mean, cov, xp.var(per_mean, axis=0, ddof=1) * (r - 1) / dof / r]
+        out.append(xp.var(per_cov, axis=0, ddof=1) * (r - 1) / dof / r)
         exact = self._exact() if self.control is not None and level == 0 else None
         if exact is not None:
             (_, exact_mean, exact_cov), _ = exact
@@ -230,17 +240,17 @@ class _QmcLevels:
             d_mean = d_cov = d_per_mean = d_per_cov = 0.0
             for w, cw, (m, s, dm, ds) in zip(weights, cov_weights, per_solve):
                 dm_c, dc_c = jax.vmap(lambda a, b, m=m, s=s: jax.jvp(combine_replicates, (m, s), (a, b))[1])(dm, ds)
-                d_outer = np.einsum("prni,rnj->prnij", dm, m)
-                d_mean = d_mean + w * np.asarray(dm_c)
-                d_cov = d_cov + cw * np.asarray(dc_c)
+                d_outer = xp.einsum("prni,rnj->prnij", dm, m)
+                d_mean = d_mean + w * xp.asarray(dm_c)
+                d_cov = d_cov + cw * xp.asarray(dc_c)
                 d_per_mean = d_per_mean + w * dm
-                d_per_cov = d_per_cov + cw * (ds - d_outer - np.swapaxes(d_outer, -1, -2))
+                d_per_cov = d_per_cov + cw * (ds - d_outer - xp.swapaxes(d_outer, -1, -2))
             if exact is not None:
                 assert exact[1] is not None  # with wrt
                 _, d_exact_mean, d_exact_cov = exact[1]
                 beta_m, beta_c = self.coefficients()
                 d_mean, d_cov = d_mean + beta_m * d_exact_mean, d_cov + beta_c * d_exact_cov
-            d_vars = [np.var(d, axis=1, ddof=1) * (r - 1) / dof / r for d in (d_per_mean, d_per_cov)]
+            d_vars = [xp.var(d, axis=1, ddof=1) * (r - 1) / dof / r for d in (d_per_mean, d_per_cov)]
             out += [d_mean, d_cov, *d_vars]
         return tuple(out)
 
@@ -249,18 +259,20 @@ class _QmcLevels:
         assert self.control is not None
         if self._exact_moments is None:
             run = self.run
+            on_host = array_module(self.sums) is np
             self._exact_moments = self.control.exact(
-                self.system, self.names, run.t0, run.t1, self.steps0, self.n_save, self.wrt, True
+                self.system, self.names, run.t0, run.t1, self.steps0, self.n_save, self.wrt, on_host
             )
         return self._exact_moments
 
 
-def _slope(y, c) -> np.ndarray:
+def _slope(y, c):
     """Per entry, the least-squares ``β = Cov_r(y, c)/Var_r(c)`` over the scramblings (1 where ``c`` does not vary:
     the control's module)."""
+    xp = array_module(y, c)
     yc, cc = y - y.mean(axis=0), c - c.mean(axis=0)
-    var = np.sum(cc * cc, axis=0)
-    return np.where(var > 0, np.sum(yc * cc, axis=0) / np.where(var > 0, var, 1.0), 1.0)
+    var = xp.sum(cc * cc, axis=0)
+    return xp.where(var > 0, xp.sum(yc * cc, axis=0) / xp.where(var > 0, var, 1.0), 1.0)
 
 
 def _checked_run(
@@ -477,7 +489,8 @@ def quasi_monte_carlo(
     point also solved with its increments reflected (``W → −W``, the point set ``1 − u``), its value the pair's
     average and its second moment the average of the two paths' (twice the path-steps; it gains where the statistic
     has a part odd in ``W``, :mod:`._variance_reduction`); ``wrt``: names of scalar parameters: ``derivatives`` of
-    the moments in them (forward mode), with errors from the replicate spread.
+    the moments in them (forward mode), with errors from the replicate spread.  Under ``jax.jit``, ``jax.grad`` and
+    ``jax.vmap`` (over parameters or keys) it runs as plain Monte Carlo does (module).
     """
     watch = Stopwatch()
     run, wrt, replicates = _checked_run(
@@ -588,14 +601,15 @@ def _estimate(levels: _QmcLevels, moments, statistic: AbstractStatistic, alpha: 
     """The :class:`MultilevelEstimate` of the levels' ``moments`` (their sum telescopes to the finest level)."""
     n_levels = len(moments)
     samples = [levels.points[level] * levels.replicates for level in range(n_levels)]
-    mean, cov, mean_var, cov_var, *tangents = (np.sum(np.stack(parts), axis=0) for parts in zip(*moments, strict=True))
+    xp = array_module(moments)
+    mean, cov, mean_var, cov_var, *tangents = (xp.sum(xp.stack(parts), axis=0) for parts in zip(*moments, strict=True))
     derivatives = None
     if tangents:  # the levels are independent: their derivatives' variances add
         d_mean, d_cov, d_mean_var, d_cov_var = tangents
         derivatives = Derivatives(d_mean, d_cov, safe_sqrt(d_mean_var), safe_sqrt(d_cov_var), levels.wrt)
     names = levels.names
-    level_means = np.stack([_pick(statistic, names, mm[0], mm[1]) for mm in moments])
-    level_vars = np.stack([_pick(statistic, names, mm[2], mm[3]) * n for mm, n in zip(moments, samples)])
+    level_means = xp.stack([_pick(statistic, names, mm[0], mm[1]) for mm in moments])
+    level_vars = xp.stack([_pick(statistic, names, mm[2], mm[3]) * n for mm, n in zip(moments, samples)])
     level_costs = tuple(levels.cost(level) for level in range(n_levels))
     fields: dict[str, Any] = dict(
         ts=np.linspace(levels.run.t0, levels.run.t1, mean.shape[0]),

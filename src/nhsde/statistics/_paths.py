@@ -23,8 +23,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .._ensemble import Save
-from .._misc import fold_key, is_concrete, under_trace
+from .._ensemble import MIN_PATHS, Save
+from .._misc import check_number, fold_key, is_concrete, under_trace
 from .._options import FixedSteps, RunOptions
 from .._simulate import forward_only, priced_steps, simulate_run
 from .._system import StochasticSystem
@@ -116,6 +116,29 @@ def paired_sensitivities(
     d_cov = xp.sum(psi, axis=1) / (n - 1)
     d_cov_var = (n / (n - 1)) ** 2 * xp.var(psi, axis=1, ddof=1) / n
     return d_mean, d_cov, d_mean_var, d_cov_var
+
+
+def checked_paths(name: str, value, *, per_level: bool = False) -> tuple[int, ...]:
+    """The path counts of argument ``name`` as ints: ``value`` one count, or with ``per_level`` a sequence of one
+    per level.  The one check every estimator makes of its counts: each at least ``MIN_PATHS`` (4), the fewest
+    :func:`~nhsde.simulate` runs, for a covariance and its standard error need 4 (with fewer, the unbiased
+    covariance divides by ``n − 1 = 0`` and its standard error reads 0)."""
+    if not per_level:
+        (n,) = counts = (check_number(name, value, integer=True),)
+        if n < MIN_PATHS:
+            raise ValueError(f"{name}={value}; must be ≥ {MIN_PATHS} (a covariance and its standard error need 4).")
+        return counts
+    if not isinstance(value, Sequence) or isinstance(value, str) or not len(value):
+        raise TypeError(f"{name}={value!r}; expected one count per level, (N_0, …, N_L).")
+    counts = tuple(check_number(name, n, integer=True) for n in value)
+    low = [(level, n) for level, n in enumerate(counts) if n < MIN_PATHS]
+    if low:
+        level, n = low[0]
+        raise ValueError(
+            f"{name}={tuple(value)!r}: level {level} has {n} path{'s' * (n != 1)}; each level needs ≥ {MIN_PATHS} "
+            "(a covariance and its standard error need 4)."
+        )
+    return counts
 
 
 def paths_save(save: Save | None, n_steps: int, names: tuple[str, ...]) -> Save:

@@ -21,10 +21,24 @@ from ._estimate import AbstractStatistic
 from ._paths import coupled_paths, coupling_solver, paired_moments
 from ._report import PilotSummary
 
-__all__ = ["Candidate", "candidate", "level_bias_bound", "pick_moments", "pilot_rate", "run_pilot"]
+__all__ = ["Candidate", "candidate", "level_bias_bound", "pick_moments", "pilot_rate", "resolution", "run_pilot"]
 
 
 # --- the statistic --------------------------------------------------------------------------------------------
+
+
+def resolution(statistic: AbstractStatistic, names: tuple[str, ...], paths) -> float:
+    """The statistic's change, to first order, when each per-path value ``z_i`` of ``paths`` ``(N, n, k)`` moves by
+    one unit in the last place of its precision, ``eps·|z_i|``: ``eps Σ_i |∂Ŝ/∂z_i| |z_i|``, for a mean
+    ``eps·mean|z|``, for a covariance ``eps Σ_i (|a_i − ā| |b_i| + |a_i| |b_i − b̄|)/(N − 1)``.  No number of paths
+    resolves the statistic more finely: a rounding error the paths share (every path's, where they differ less than
+    an ulp) averages to itself, and the standard error does not see it."""
+    eps = float(np.finfo(paths.dtype).eps)
+    z = np.asarray(paths, np.float64)
+    n = z.shape[0]
+    size, centred = np.abs(z), np.abs(z - z.mean(axis=0))
+    cross = np.einsum("pni,pnj->nij", centred, size)
+    return eps * float(statistic.pick(names, size.mean(axis=0), (cross + np.swapaxes(cross, -1, -2)) / (n - 1)))
 
 
 def pick_moments(statistic: AbstractStatistic, names: tuple[str, ...], moments) -> tuple[float, float]:
@@ -171,4 +185,5 @@ def run_pilot(system, y0, key, cand: Candidate, run: RunOptions, *, statistic, t
         extrapolation_bound=ex_bound,
         work=work,
         seconds_per_path_step=rate,
+        resolution=resolution(statistic, names, plain[-1]),
     )

@@ -26,6 +26,7 @@ random digital shift ``s``.  Each point is then uniform on the unit cube and the
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import importlib.util
@@ -42,7 +43,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int, PRNGKeyArray, UInt
 
 from .._brownian import BLOCK, AbstractDriver
-from .._misc import fold_key
+from .._misc import fold_key, is_concrete, under_trace
 from .._solvers import SOLVERS, solver_needs
 from .._system import StochasticSystem
 from .._weak import GaussianWeakIncrement
@@ -252,9 +253,14 @@ def check_solver(solver, system: StochasticSystem):
 
 def stacked_scramblings(key, replicates: int, d: int) -> tuple[Array, Array]:
     """Scramblings ``r = 0 … replicates − 1`` (:func:`scrambled_sobol` of ``fold_in(key, r)``), stacked: ``v``
-    ``(R, d, 32)`` and ``shift`` ``(R, d)``, stacked on the host (no program per count)."""
-    scrambled = [scrambled_sobol(fold_key(key, r), d) for r in range(replicates)]
-    return tuple(jax.device_put(np.stack([np.asarray(s[i]) for s in scrambled])) for i in (0, 1))
+    ``(R, d, 32)`` and ``shift`` ``(R, d)``, stacked on the host (no program per count); a concrete key's under a
+    JAX transformation too (computed now), a traced key's (``vmap`` over keys) in the trace."""
+    if not is_concrete(key):
+        scrambled = [scrambled_sobol(fold_key(key, r), d) for r in range(replicates)]
+        return jnp.stack([s[0] for s in scrambled]), jnp.stack([s[1] for s in scrambled])
+    with jax.ensure_compile_time_eval() if under_trace() else contextlib.nullcontext():
+        scrambled = [scrambled_sobol(fold_key(key, r), d) for r in range(replicates)]
+        return tuple(jax.device_put(np.stack([np.asarray(s[i]) for s in scrambled])) for i in (0, 1))
 
 
 def combine_replicates(means: Values, seconds: Values):

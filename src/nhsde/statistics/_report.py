@@ -66,6 +66,7 @@ class PilotSummary:
     extrapolation_bound: float  # upper bound on |C'|
     work: float
     seconds_per_path_step: float
+    resolution: float = math.nan  # the statistic's change when every saved value moves one ulp (finest level)
 
 
 @dataclasses.dataclass(frozen=True)
