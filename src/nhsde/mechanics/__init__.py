@@ -21,7 +21,11 @@ from ._forms import (
     formulate as formulate,
     project_velocity as project_velocity,
 )
-from ._spec import MechanicalSpec as MechanicalSpec, ServoConstraint as ServoConstraint
+from ._spec import (
+    MechanicalSpec as MechanicalSpec,
+    ServoConstraint as ServoConstraint,
+    SoftConstraint as SoftConstraint,
+)
 from ._state_space import (
     SingularStateSpaceError as SingularStateSpaceError,
     StateSpace as StateSpace,

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 from jax import Array
 
-__all__ = ["UNROLL_UP_TO", "cho_solve", "cholesky", "spd_solve"]
+__all__ = ["UNROLL_UP_TO", "cho_solve", "cholesky", "psd_factor", "spd_solve"]
 
 UNROLL_UP_TO = 8
 """The largest size factorised entry by entry (the work grows as n³ in the program's size)."""
@@ -52,3 +52,25 @@ def cho_solve(chol: Array, b: Array) -> Array:
 def spd_solve(a: Array, b: Array) -> Array:
     """``x`` with ``a x = b`` for a symmetric positive-definite ``a``."""
     return cho_solve(cholesky(a), b)
+
+
+def psd_factor(a: Array) -> Array:
+    """A lower-triangular ``L`` with ``a = L Lᵀ`` for a symmetric positive *semi*-definite ``a`` (``(n, n)``).
+
+    Cholesky's recursion, with a column set to zero where its pivot vanishes (to rounding, relative to the
+    largest diagonal entry): in a semidefinite matrix a zero pivot has a zero column below it.  A Rayleigh
+    function's ``∂²R/∂q̇²`` is often singular (friction on some velocities only).
+    """
+    n = a.shape[-1]
+    zero = jnp.zeros((), a.dtype)
+    floor = 16 * n * jnp.finfo(a.dtype).eps * jnp.max(jnp.abs(jnp.diagonal(a)))
+    rows: list[list[Array]] = [[zero] * n for _ in range(n)]
+    for j in range(n):
+        pivot = a[j, j] - sum((rows[j][k] ** 2 for k in range(j)), zero)
+        live = pivot > floor
+        diagonal = jnp.sqrt(jnp.where(live, pivot, 1.0))
+        rows[j][j] = jnp.where(live, diagonal, zero)
+        for i in range(j + 1, n):
+            entry = (a[i, j] - sum((rows[i][k] * rows[j][k] for k in range(j)), zero)) / diagonal
+            rows[i][j] = jnp.where(live, entry, zero)
+    return jnp.stack([jnp.stack(row) for row in rows])

@@ -18,6 +18,8 @@ constraint_bias     ``a0(q, π, t, p) -> (m,)``
 holonomic           ``f(q, π, t, p) -> (h,)``       ``f = 0``, S1 (1.1)
 random_drift        ``φ(π, t, p) -> (k,)``          ``π̇ = φ + ψ V`` (1.2)
 random_diffusion    ``ψ(π, t, p) -> (k, l)``
+soft                :class:`SoftConstraint`         viscous contacts ``−γ Aᵀ A q̇``
+temperature         ``kT(p) -> ()``                 a heat bath: fluctuation–dissipation noise
 ==================  ==============================  ===============================
 
 ``V`` is standard white noise (unit intensity): S0's intensity ``ν`` belongs in
@@ -30,6 +32,15 @@ The random parameters may enter ``Π``, ``R``, ``Q¹`` and ``Q²`` but not ``T``
 constraints: there S0 (1.8) needs the Itô correction ``Δσ`` (products of
 differentials of ``∂T/∂q̇`` and ``B'``), which nhsde does not implement, so such
 specs are refused.
+
+Finite temperature (THEORY.md §8).  A constraint declared :class:`SoftConstraint` is no constraint: it is the
+viscous contact force ``−γ Aᵀ A q̇`` (the Rayleigh function gains ``½ γ |A q̇|²``), so the velocities span all of
+``q̇``.  A ``temperature`` ``kT`` puts the system in a heat bath: every dissipative channel gets its
+fluctuation–dissipation noise, ``√(2kT) L dW`` with ``L Lᵀ = ∂²R/∂q̇²`` for the dissipation ``R`` (quadratic in
+``q̇``) and ``√(2γkT) Aᵀ dW`` at the soft contacts, on channels after those of ``Q²``.  With soft contacts only and
+``Q² = 0`` the system is an ordinary Langevin system whose stationary law is Gibbs, ``exp(−H/kT)``; with ideal
+constraints and ``temperature`` it is the *naive* thermal model, whose noise reaches the friction but not the
+constraint (Jagla, Bloch & Rojo, arXiv 2603.14424: at finite temperature it can violate the second law).
 """
 
 from __future__ import annotations
@@ -41,10 +52,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._params import AbstractParameters
+from .._params import AbstractParameters, sqrt_intensity
+from . import _small as small
 from ._dependence import depends_on
 
-__all__ = ["MechanicalSpec", "ServoConstraint"]
+__all__ = ["MechanicalSpec", "ServoConstraint", "SoftConstraint"]
 
 
 class ServoConstraint(eqx.Module):
@@ -59,6 +71,22 @@ class ServoConstraint(eqx.Module):
     matrix: Callable = eqx.field(static=True)
     realisation: Callable = eqx.field(static=True)
     bias: Callable | None = eqx.field(static=True, default=None)
+
+
+class SoftConstraint(eqx.Module):
+    """A constraint ``A(q, π, t) q̇ = 0`` realised by a viscous contact of viscosity ``γ`` (THEORY.md §8).
+
+    Not a constraint: the contact force is ``−γ Aᵀ A q̇``, from the Rayleigh term ``½ γ |A q̇|²``, and in a bath
+    of temperature ``kT`` (``MechanicalSpec(temperature=…)``) it comes with the noise ``√(2γkT) Aᵀ dW``.  As
+    ``γ → ∞`` at ``kT = 0`` the ideal constraint returns, on the contact time scale ``m/γ`` (stiff).
+
+    Arguments:
+        matrix: ``A(q, π, t, p) -> (s, n)``, the rows of the constraint.
+        viscosity: ``γ(p) -> ()``, the contact viscosity ``γ ≥ 0`` from the parameters (a leaf of ``p``).
+    """
+
+    matrix: Callable = eqx.field(static=True)
+    viscosity: Callable = eqx.field(static=True)
 
 
 _POSITION = "(q, pi, t, p)"
@@ -106,12 +134,16 @@ class MechanicalSpec(eqx.Module):
     constraint_bias: Callable | None = eqx.field(static=True)
     holonomic: Callable | None = eqx.field(static=True)
     servo: ServoConstraint | None = eqx.field(static=True)
+    soft: SoftConstraint | None = eqx.field(static=True)
+    temperature: Callable | None = eqx.field(static=True)
     random_parameters: tuple[str, ...] = eqx.field(static=True)
     random_drift: Callable | None = eqx.field(static=True)
     random_diffusion: Callable | None = eqx.field(static=True)
     n_ideal: int = eqx.field(static=True)  # rows of a plus holonomic constraints
     n_servo: int = eqx.field(static=True)
     noise_dim: int = eqx.field(static=True)  # l; one idle channel if nothing is random
+    n_soft: int = eqx.field(static=True)  # rows of the soft constraints
+    n_forced: int = eqx.field(static=True)  # channels of Q² and ψ; the bath's channels follow them
 
     def __init__(
         self,
@@ -128,6 +160,8 @@ class MechanicalSpec(eqx.Module):
         constraint_bias=None,
         holonomic=None,
         servo=None,
+        soft=None,
+        temperature=None,
         random_parameters=(),
         random_drift=None,
         random_diffusion=None,
@@ -148,6 +182,11 @@ class MechanicalSpec(eqx.Module):
             raise ValueError("MechanicalSpec: give exactly one of kinetic_energy=T(q, qdot, pi, t, p) or mass_matrix.")
         if servo is not None and not isinstance(servo, ServoConstraint):
             raise TypeError(f"MechanicalSpec: servo={type(servo).__name__}; expected a ServoConstraint.")
+        if soft is not None and not isinstance(soft, SoftConstraint):
+            raise TypeError(
+                f"MechanicalSpec: soft={type(soft).__name__}; expected a SoftConstraint(matrix=A(q, pi, t, p), "
+                "viscosity=gamma(p))."
+            )
         functions = {
             "kinetic_energy": kinetic_energy,
             "mass_matrix": mass_matrix,
@@ -160,11 +199,14 @@ class MechanicalSpec(eqx.Module):
             "holonomic": holonomic,
             "random_drift": random_drift,
             "random_diffusion": random_diffusion,
+            "temperature": temperature,
         }
         if servo is not None:
             functions.update(
                 {"servo.matrix": servo.matrix, "servo.realisation": servo.realisation, "servo.bias": servo.bias}
             )
+        if soft is not None:
+            functions.update({"soft.matrix": soft.matrix, "soft.viscosity": soft.viscosity})
         for name, fn in functions.items():
             if fn is not None and not callable(fn):
                 raise TypeError(f"MechanicalSpec: {name}={fn!r} is not callable.")
@@ -186,10 +228,12 @@ class MechanicalSpec(eqx.Module):
         self.constraint_bias = constraint_bias
         self.holonomic = holonomic
         self.servo = servo
+        self.soft = soft
+        self.temperature = temperature
         self.random_parameters = random_parameters
         self.random_drift = random_drift
         self.random_diffusion = random_diffusion
-        self.n_ideal, self.n_servo, self.noise_dim = self._inspect()
+        self.n_ideal, self.n_servo, self.n_soft, self.n_forced, self.noise_dim = self._inspect()
 
     # ------------------------------------------------------------------ trace-time checks
 
@@ -248,6 +292,15 @@ class MechanicalSpec(eqx.Module):
             )
             if self.servo.bias is not None:
                 _expect("servo.bias", _POSITION, _traced_shape("servo.bias", _POSITION, self.servo.bias, pos), (s,))
+        n_soft = 0
+        if self.soft is not None:
+            shape = _traced_shape("soft.matrix", _POSITION, self.soft.matrix, pos)
+            if len(shape) != 2 or shape[1] != n:
+                raise ValueError(f"MechanicalSpec: soft.matrix{_POSITION} returned shape {shape}; expected (s, {n}).")
+            n_soft = shape[0]
+            _expect("soft.viscosity", "(p)", _traced_shape("soft.viscosity", "(p)", self.soft.viscosity, (p,)), ())
+        if self.temperature is not None:
+            _expect("temperature", "(p)", _traced_shape("temperature", "(p)", self.temperature, (p,)), ())
         if m + h + s >= n:
             raise ValueError(
                 f"MechanicalSpec: {m + h + s} constraints on {n} coordinates leave no motion; need fewer than n = {n}."
@@ -281,6 +334,8 @@ class MechanicalSpec(eqx.Module):
                 ("constraint_bias", self.constraint_bias, pos),
                 ("holonomic", self.holonomic, pos),
             ]
+            if self.soft is not None:
+                kinematics.append(("soft.matrix", self.soft.matrix, pos))
             if self.servo is not None:
                 kinematics += [
                     ("servo.matrix", self.servo.matrix, pos),
@@ -295,7 +350,11 @@ class MechanicalSpec(eqx.Module):
                         "∂T/∂q̇ and B', which nhsde does not implement; let π enter only the potential, "
                         "dissipation and forces."
                     )
-        return m + h, s, channels if channels else 1
+        forced = channels or 0
+        bath = 0
+        if self.temperature is not None:
+            bath = (n if self.dissipation is not None else 0) + n_soft
+        return m + h, s, n_soft, forced, (forced + bath) or 1
 
     # ------------------------------------------------------------------ evaluation
 
@@ -325,7 +384,27 @@ class MechanicalSpec(eqx.Module):
         return jnp.zeros((), q.dtype) if self.potential is None else self.potential(q, pi, t, p)
 
     def rayleigh(self, q, v, pi, t, p):
-        return jnp.zeros((), q.dtype) if self.dissipation is None else self.dissipation(q, v, pi, t, p)
+        """``R`` and, with soft constraints, the contacts' ``½ γ |A q̇|²``."""
+        r = jnp.zeros((), q.dtype) if self.dissipation is None else self.dissipation(q, v, pi, t, p)
+        if self.soft is None:
+            return r
+        slip = self.soft.matrix(q, pi, t, p) @ v
+        return r + 0.5 * self.soft.viscosity(p) * (slip @ slip)
+
+    def bath_force(self, q, pi, t, p):
+        """The heat bath's random forces, ``(n, l_bath)``: ``√(2kT) L`` with ``L Lᵀ = ∂²R/∂q̇²`` (the dissipation
+        ``R`` without the contacts), then ``√(2γkT) Aᵀ`` of the soft contacts; empty without a ``temperature``."""
+        if self.temperature is None:
+            return jnp.zeros((self.n, 0), q.dtype)
+        root = sqrt_intensity(2 * self.temperature(p))
+        columns = []
+        if self.dissipation is not None:
+            dissipation = self.dissipation
+            friction = jax.hessian(lambda v: dissipation(q, v, pi, t, p))(jnp.zeros_like(q))
+            columns.append(small.psd_factor(friction))
+        if self.soft is not None:
+            columns.append(jnp.sqrt(self.soft.viscosity(p)) * self.soft.matrix(q, pi, t, p).T)
+        return root * jnp.concatenate(columns, axis=1).astype(q.dtype)
 
     def energy(self, q, v, pi, t, p):
         """Mechanical energy ``T + Π``."""
@@ -344,10 +423,14 @@ class MechanicalSpec(eqx.Module):
         )
 
     def random_force(self, q, v, pi, t, p):
-        """``Q²``, shape ``(n, l)``."""
+        """``Q²``, shape ``(n, l)``, then the heat bath's channels (:meth:`bath_force`)."""
         if self.noise_force is None:
-            return jnp.zeros((self.n, self.noise_dim), q.dtype)
-        return self.noise_force(q, v, pi, t, p)
+            forced = jnp.zeros((self.n, self.n_forced), q.dtype)
+        else:
+            forced = self.noise_force(q, v, pi, t, p)
+        if self.temperature is None:
+            return forced if self.n_forced else jnp.zeros((self.n, self.noise_dim), q.dtype)
+        return jnp.concatenate([forced, self.bath_force(q, pi, t, p)], axis=1)
 
     def ideal_constraints(self, q, pi, t, p):
         """``(A, A0)``: the rows ``a, a0`` and the holonomic ones ``∂f/∂q, ∂f/∂t`` (S1 (1.4))."""
@@ -405,7 +488,8 @@ class MechanicalSpec(eqx.Module):
     def pi_diffusion(self, pi, t, p):
         if self.random_diffusion is None:
             return jnp.zeros((self.k, self.noise_dim), pi.dtype)
-        return self.random_diffusion(pi, t, p)
+        psi = self.random_diffusion(pi, t, p)
+        return jnp.pad(psi, ((0, 0), (0, self.noise_dim - psi.shape[1])))  # the bath does not drive π
 
     # ------------------------------------------------------------------ value checks
 
@@ -442,6 +526,8 @@ class MechanicalSpec(eqx.Module):
                     f"kinetic_energy is not quadratic in q̇ at q={np.asarray(q).tolist()} "
                     f"(T(v)={float(actual):g}, its quadratic part {float(quadratic):g}); S0 treats natural systems."
                 )
+        if self.temperature is not None or self.soft is not None:
+            self._check_bath(q, pi, t, p)
         for label, rows in (
             ("constraint matrix (ideal and servo rows)", self.velocity_constraints(q, pi, t, p)[0]),
             ("virtual-displacement rows (ideal and servo realisation)", self.displacement_constraints(q, pi, t, p)),
@@ -456,3 +542,24 @@ class MechanicalSpec(eqx.Module):
                     f"{label} at q={np.asarray(q).tolist()} has rank {rank} < {rows.shape[0]} rows: the constraints "
                     f"are not independent (singular values {sv.tolist()}); remove the redundant rows."
                 )
+
+    def _check_bath(self, q, pi, t, p):
+        """``kT ≥ 0``, ``γ ≥ 0`` and, in a bath, ``R`` quadratic in ``q̇``: its noise is ``√(2kT) L``,
+        ``L Lᵀ = ∂²R/∂q̇²``."""
+        for name, fn in (("temperature", self.temperature), ("soft.viscosity", self.soft and self.soft.viscosity)):
+            if fn is not None:
+                value = float(fn(p))
+                if not np.isfinite(value) or value < 0:
+                    raise ValueError(f"MechanicalSpec: {name}(p) = {value}; must be finite and ≥ 0.")
+        if self.temperature is None or self.dissipation is None:
+            return
+        dissipation = self.dissipation
+        v = jax.random.normal(jax.random.key(1), (self.n,), q.dtype)
+        friction = jax.hessian(lambda v: dissipation(q, v, pi, t, p))(jnp.zeros_like(v))
+        actual, quadratic = float(dissipation(q, v, pi, t, p)), float(0.5 * v @ friction @ v)
+        if not np.isclose(actual, quadratic, rtol=1e-6, atol=1e-12):
+            raise ValueError(
+                f"MechanicalSpec: dissipation is not quadratic in q̇ at q={np.asarray(q).tolist()} (R(v)={actual:g}, "
+                f"½ vᵀ(∂²R/∂q̇²)v = {quadratic:g}); a temperature gives it the noise of covariance 2kT ∂²R/∂q̇², "
+                "which needs R = ½ q̇ᵀ C(q) q̇."
+            )

@@ -59,6 +59,10 @@ from ._rotating_rod import BeadOnRotatingRod as BeadOnRotatingRod, RodParameters
 from ._sleigh import ChaplyginSleigh as ChaplyginSleigh, SleighParameters as SleighParameters
 from ._spec_scene import AbstractSpecScene as AbstractSpecScene
 from ._spec_sleigh import ChaplyginSleighFromSpec as ChaplyginSleighFromSpec
+from ._thermal_sleigh import (
+    BathSleighParameters as BathSleighParameters,
+    ChaplyginSleighInBath as ChaplyginSleighInBath,
+)
 
 SCENES = scene_registry(__name__)
 """Scene names (as the CLI spells them) → scene classes: every concrete :class:`AbstractScene` defined in

@@ -14,6 +14,11 @@ random torque, scaled so that friction is proportional to ``bbᵀ``, the form of
 S0 Statement 1).  Energy ``H = ½(m v² + J ω²)`` is conserved at ``ε = ν = 0``, but
 the flow compresses phase volume (``div = −(m a/J) v``): no invariant measure,
 and a nonlinear scene for the drift statistics of the contact point ``(x, y)``.
+
+This is the *naive thermal* model (S0's): read as a bath of temperature ``kT = ν/(4ε)``, the noise reaches the
+friction but not the knife's reaction.  At stationarity ``⟨v⟩ = a⟨ω²⟩/(2ε) > 0``: the sleigh drifts forward in a
+bath at one temperature, which Jagla, Bloch & Rojo (arXiv 2603.14424) show violates the second law.  The consistent
+model, a viscous knife with its own fluctuation–dissipation noise, is :class:`~nhsde.scenes.ChaplyginSleighInBath`.
 """
 
 from __future__ import annotations
@@ -87,6 +92,8 @@ _ENERGY_FULL, _ENERGY_REDUCED = _energy(3, 4), _energy(0, 1)
 
 class ChaplyginSleigh(AbstractScene):
     """The noisy Chaplygin sleigh: a knife edge with friction, a random force along it and a random torque.
+
+    The naive thermal model (module docstring): at ``kT = ν/(4ε)`` it drifts forward, ``⟨v⟩ = a⟨ω²⟩/(2ε)``.
 
     ``drift=True`` keeps the contact point ``(x, y)`` and heading ``θ`` in the
     state; otherwise the state is ``(v, ω)`` alone (their dynamics do not involve

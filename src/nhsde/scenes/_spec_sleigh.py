@@ -7,6 +7,10 @@ Friction ``R = ε (m v² + J θ̇²)`` with ``v = e₁·Ṗ`` and ``J = I + m a�
 force ``√(m ν) V₁`` along the knife at ``P`` and torque ``√(J ν) V₂``.  This gives
 the hand-written scene's equations.  The Voronets choice ``ẏ = tan θ ẋ`` is
 singular at ``cos θ = 0``, so the default route keeps all velocities.
+
+Like :class:`~nhsde.scenes.ChaplyginSleigh` this is the *naive thermal* model, noise on the friction but not on the
+knife's reaction, which drifts forward at finite temperature (Jagla, Bloch & Rojo, arXiv 2603.14424); the spec
+route's consistent one declares the knife a :class:`~nhsde.mechanics.SoftConstraint` with a ``temperature``.
 """
 
 from __future__ import annotations
@@ -47,7 +51,7 @@ def _force_and_torque(q, v, pi, t, p):
 
 
 class ChaplyginSleighFromSpec(AbstractSpecScene):
-    """Chaplygin sleigh with friction and random force/torque, from its Lagrangian."""
+    """Chaplygin sleigh with friction and random force/torque, from its Lagrangian (the naive thermal model)."""
 
     name: ClassVar[str] = "chaplygin-sleigh-from-spec"
     Parameters: ClassVar[type[SleighParameters]] = SleighParameters

@@ -1,0 +1,262 @@
+"""The Chaplygin sleigh in a heat bath: the ideal, the naive thermal and the soft (viscous-contact) model.
+
+Conventions of :mod:`._sleigh`: the knife point ``P`` moves with speed ``v`` along the body axis ``e₁`` and
+``w`` across it (the slip), the centre of mass is a distance ``a`` ahead of ``P``, ``J = I + m a²``, and the
+friction is ``R = ε (m v² + J ω²)``.  The bath has temperature ``kT``.
+
+- ``model="ideal"``: the knife keeps ``w = 0`` exactly and nothing is random (``kT``, ``γ`` unused):
+  ``v̇ = a ω² − 2ε v``, ``ω̇ = −(m a/J) v ω − 2ε ω``.
+- ``model="naive"``: the same ideal constraint with the friction's fluctuation–dissipation noise,
+  ``+ √(4εkT/m) V₁`` and ``+ √(4εkT/J) V₂``: :class:`~nhsde.scenes.ChaplyginSleigh` at ``ν = 4εkT``.  Its
+  reaction at the knife has no noise, and the sleigh drifts forward, ``⟨v⟩ = a⟨ω²⟩/(2ε) > 0`` at stationarity,
+  against the second law (Jagla, Bloch & Rojo, arXiv 2603.14424).
+- ``model="soft"``: the knife is a viscous contact, force ``−γ w e₂`` at ``P`` with its noise ``√(2γkT) V_c``.
+  Newton–Euler with ``F = F₁ e₁ + F₂ e₂`` at ``P`` and a couple ``τ``:
+
+      m (v̇ − ω w − a ω²) = F₁,    m (ẇ + a ω̇ + ω v) = F₂,    I ω̇ = τ − a F₂,
+      F₁ = −2εm v + √(4εkTm) V₁,   F₂ = −γ w + √(2γkT) V_c,   τ = −2εJ ω + √(4εkTJ) V₂.
+
+  This is a Langevin system with ``T = ½ m (v² + (w + aω)²) + ½ I ω²``: its stationary law is Gibbs,
+  ``exp(−T/kT)``, so ``m⟨v²⟩ = m⟨(w + aω)²⟩ = I⟨ω²⟩ = kT`` and ``⟨v⟩ = 0``.  As ``γ → ∞`` at ``kT = 0`` the
+  ideal sleigh returns, on the contact time scale ``m/γ``.
+
+Positions (``drift=True``): ``ẋ = v cos θ − w sin θ``, ``ẏ = v sin θ + w cos θ``, ``θ̇ = ω``.  The velocity
+damping is linear with constant coefficients in ``(v, w, ω)`` (the body frame), so it is declared as the
+system's ``linear_drift``: explicit solvers past their stability limit on ``γ`` are refused before the run,
+and the exponential solver treats the stiff contact exactly.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import equinox as eqx
+import jax.numpy as jnp
+
+from .._params import AbstractParameters, parameter, sqrt_intensity
+from .._system import StateLayout, StochasticSystem
+from ._base import AbstractScene
+
+__all__ = ["BathSleighParameters", "ChaplyginSleighInBath"]
+
+MODELS = ("ideal", "naive", "soft")
+
+
+class BathSleighParameters(AbstractParameters):
+    eps: jnp.ndarray = parameter(default=0.5, lower=0.0, doc="friction ε, 1/s")
+    kT: jnp.ndarray = parameter(default=0.5, lower=0.0, doc="bath temperature kT (energy)")
+    gamma: jnp.ndarray = parameter(default=1.0, lower=0.0, doc="contact viscosity γ of the soft knife")
+    mass: jnp.ndarray = parameter(default=1.0, lower=0.0, strict=True, doc="mass m")
+    inertia: jnp.ndarray = parameter(default=1.0, lower=0.0, strict=True, doc="central moment of inertia I")
+    offset: jnp.ndarray = parameter(default=1.0, lower=0.0, doc="distance a from the knife to the centre of mass")
+
+
+def _j(p):
+    return p.inertia + p.mass * p.offset**2
+
+
+# ---------------------------------------------------------------- ideal and naive: state (v, ω)
+
+
+def _ideal_velocity_drift(v, w, p):
+    return jnp.stack([p.offset * w**2 - 2 * p.eps * v, -(p.mass * p.offset / _j(p)) * v * w - 2 * p.eps * w])
+
+
+def _naive_noise(p, dtype):
+    """``√(4εkT) diag(1/√m, 1/√J)``: the friction's fluctuation–dissipation noise."""
+    scale = sqrt_intensity(p.kT) * jnp.sqrt(4 * p.eps)
+    return (scale * jnp.diag(jnp.stack([1 / jnp.sqrt(p.mass), 1 / jnp.sqrt(_j(p))]))).astype(dtype)
+
+
+def _ideal_linear(p):
+    return -2.0 * p.eps * jnp.eye(2, dtype=p.eps.dtype)
+
+
+# ---------------------------------------------------------------- soft: state (v, w, ω)
+
+
+def _soft_linear(p):
+    """``−M⁻¹ D`` on ``(v, w, ω)``: ``M`` the body-frame mass matrix, ``D = diag(2εm, γ, 2εJ)``."""
+    a, m, i, eps, gamma = p.offset, p.mass, p.inertia, p.eps, p.gamma
+    zero = jnp.zeros_like(eps)
+    return jnp.stack(
+        [
+            jnp.stack([-2 * eps, zero, zero]),
+            jnp.stack([zero, -gamma * (1 / m + a**2 / i), 2 * eps * a * _j(p) / i]),
+            jnp.stack([zero, a * gamma / i, -2 * eps * _j(p) / i]),
+        ]
+    )
+
+
+def _soft_velocity_drift(v, w, omega, p):
+    linear = _soft_linear(p).astype(v.dtype) @ jnp.stack([v, w, omega])
+    return linear + jnp.stack([omega * w + p.offset * omega**2, -omega * v, jnp.zeros_like(v)])
+
+
+def _soft_noise(p, dtype):
+    """``M⁻¹ √(2kT) D^{1/2}`` on channels (friction force, friction torque, contact)."""
+    a, m, i = p.offset, p.mass, p.inertia
+    force, torque, contact = jnp.sqrt(4 * p.eps * m), jnp.sqrt(4 * p.eps * _j(p)), jnp.sqrt(2 * p.gamma)
+    zero = jnp.zeros_like(force)
+    b = jnp.stack(
+        [
+            jnp.stack([force / m, zero, zero]),
+            jnp.stack([zero, -a * torque / i, contact * (1 / m + a**2 / i)]),
+            jnp.stack([zero, torque / i, -a * contact / i]),
+        ]
+    )
+    return (sqrt_intensity(p.kT) * b).astype(dtype)
+
+
+# ---------------------------------------------------------------- the vector fields (module level: static, hashable)
+
+
+def _positions(theta, v, w, omega):
+    c, s = jnp.cos(theta), jnp.sin(theta)
+    return jnp.stack([v * c - w * s, v * s + w * c, omega])
+
+
+def _ideal_drift_full(t, y, p):
+    v, omega = y[3], y[4]
+    return jnp.concatenate([_positions(y[2], v, jnp.zeros_like(v), omega), _ideal_velocity_drift(v, omega, p)])
+
+
+def _ideal_drift_reduced(t, y, p):
+    return _ideal_velocity_drift(y[0], y[1], p)
+
+
+def _ideal_diffusion_full(t, y, p):
+    return jnp.zeros((5, 2), y.dtype)
+
+
+def _ideal_diffusion_reduced(t, y, p):
+    return jnp.zeros((2, 2), y.dtype)
+
+
+def _naive_diffusion_full(t, y, p):
+    return jnp.concatenate([jnp.zeros((3, 2), y.dtype), _naive_noise(p, y.dtype)])
+
+
+def _naive_diffusion_reduced(t, y, p):
+    return _naive_noise(p, y.dtype)
+
+
+def _ideal_linear_full(p):
+    return jnp.zeros((5, 5), p.eps.dtype).at[3:, 3:].set(_ideal_linear(p))
+
+
+def _soft_drift_full(t, y, p):
+    v, w, omega = y[3], y[4], y[5]
+    return jnp.concatenate([_positions(y[2], v, w, omega), _soft_velocity_drift(v, w, omega, p)])
+
+
+def _soft_drift_reduced(t, y, p):
+    return _soft_velocity_drift(y[0], y[1], y[2], p)
+
+
+def _soft_diffusion_full(t, y, p):
+    return jnp.concatenate([jnp.zeros((3, 3), y.dtype), _soft_noise(p, y.dtype)])
+
+
+def _soft_diffusion_reduced(t, y, p):
+    return _soft_noise(p, y.dtype)
+
+
+def _soft_linear_full(p):
+    return jnp.zeros((6, 6), p.eps.dtype).at[3:, 3:].set(_soft_linear(p))
+
+
+def _ideal_energy(offset):
+    def energy(t, y, p):
+        """``H = ½(m v² + J ω²)``."""
+        return 0.5 * (p.mass * y[offset] ** 2 + _j(p) * y[offset + 1] ** 2)
+
+    return energy
+
+
+def _soft_energy(offset):
+    def energy(t, y, p):
+        """``H = ½ m (v² + (w + aω)²) + ½ I ω²``."""
+        v, w, omega = y[offset], y[offset + 1], y[offset + 2]
+        return 0.5 * (p.mass * (v**2 + (w + p.offset * omega) ** 2) + p.inertia * omega**2)
+
+    return energy
+
+
+_POSITIONS = (("x", "y", "theta"), ("dependent_coordinate", "dependent_coordinate", "independent_coordinate"))
+_FIELDS = {
+    # (model, drift): (velocity names, drift, diffusion, linear drift, noise channels)
+    ("ideal", True): (("v", "omega"), _ideal_drift_full, _ideal_diffusion_full, _ideal_linear_full, 2),
+    ("ideal", False): (("v", "omega"), _ideal_drift_reduced, _ideal_diffusion_reduced, _ideal_linear, 2),
+    ("naive", True): (("v", "omega"), _ideal_drift_full, _naive_diffusion_full, _ideal_linear_full, 2),
+    ("naive", False): (("v", "omega"), _ideal_drift_reduced, _naive_diffusion_reduced, _ideal_linear, 2),
+    ("soft", True): (("v", "slip", "omega"), _soft_drift_full, _soft_diffusion_full, _soft_linear_full, 3),
+    ("soft", False): (("v", "slip", "omega"), _soft_drift_reduced, _soft_diffusion_reduced, _soft_linear, 3),
+}
+_ENERGIES = {
+    ("ideal", True): _ideal_energy(3),
+    ("ideal", False): _ideal_energy(0),
+    ("soft", True): _soft_energy(3),
+    ("soft", False): _soft_energy(0),
+}
+
+
+class ChaplyginSleighInBath(AbstractScene):
+    """The Chaplygin sleigh in a heat bath of temperature kT: ideal, naive thermal or soft (viscous) knife.
+
+    ``model`` picks how the knife is realised (module docstring): ``"soft"`` (default), a viscous contact of
+    viscosity ``γ`` with its fluctuation–dissipation noise, whose stationary law is Gibbs; ``"naive"``, the ideal
+    constraint with noise on the friction only (S0's model, :class:`~nhsde.scenes.ChaplyginSleigh` at
+    ``ν = 4εkT``), which drifts forward at finite temperature; ``"ideal"``, no noise.  The state is
+    ``(x, y, θ)`` (with ``drift=True``) then ``(v, ω)``, or ``(v, slip, ω)`` for the soft knife.
+
+    Arguments:
+        model: ``"soft"``, ``"naive"`` or ``"ideal"``.
+        drift: keep the knife point ``(x, y)`` and heading ``θ`` in the state.
+        **params: the :class:`BathSleighParameters` (``eps``, ``kT``, ``gamma``, ``mass``, ``inertia``, ``offset``).
+
+    Examples:
+        >>> import nhsde
+        >>> nhsde.scenes.ChaplyginSleighInBath(gamma=10.0).build().layout.names
+        ('x', 'y', 'theta', 'v', 'slip', 'omega')
+        >>> nhsde.scenes.ChaplyginSleighInBath(model="naive", drift=False).observable_names()
+        ('v', 'omega', 'energy')
+    """
+
+    name: ClassVar[str] = "chaplygin-sleigh-in-bath"
+    Parameters: ClassVar[type[BathSleighParameters]] = BathSleighParameters
+    intensities: ClassVar[tuple[str, ...]] = ("kT",)
+
+    params: BathSleighParameters
+    model: str = eqx.field(static=True)
+    drift: bool = eqx.field(static=True)
+
+    def __init__(self, *, model: str = "soft", drift: bool = True, **params):
+        if model not in MODELS:
+            raise ValueError(f"model={model!r}; allowed: {', '.join(repr(m) for m in MODELS)}.")
+        self.params = BathSleighParameters(**params)
+        self.model = model
+        self.drift = bool(drift)
+
+    def build(self) -> StochasticSystem:
+        velocities, drift, diffusion, linear, channels = _FIELDS[self.model, self.drift]
+        names, roles = velocities, ("velocity",) * len(velocities)
+        if self.drift:
+            names, roles = _POSITIONS[0] + names, _POSITIONS[1] + roles
+        energy = _ENERGIES["soft" if self.model == "soft" else "ideal", self.drift]
+        return StochasticSystem(
+            drift_fn=drift,
+            diffusion_fn=diffusion,
+            params=self.params,
+            layout=StateLayout(names, roles),
+            noise_dim=channels,
+            additive_noise=True,
+            linear_drift=linear,
+            observables=(("energy", energy),),
+        )
+
+    def initial_state(self):
+        """Moving straight ahead at unit speed from the origin, without slip."""
+        velocities = 3 if self.model == "soft" else 2
+        y = jnp.zeros(velocities + (3 if self.drift else 0))
+        return y.at[3 if self.drift else 0].set(1.0)
