@@ -10,7 +10,8 @@
 - Statistics at a requested accuracy for less work: :func:`extrapolate`
   (Richardson–Romberg / Talay–Tubaro), :func:`multilevel_monte_carlo` (Giles),
   :func:`antithetic` paths, :func:`control_variate` (the linearised system
-  driven by the same increments), :func:`quasi_monte_carlo` (scrambled Sobol'
+  driven by the same increments), :func:`martingale_control_variate` (the discrete martingale Σ Z(Xₙ)·ΔWₙ fitted
+  on a pilot), :func:`quasi_monte_carlo` (scrambled Sobol'
   points through a Brownian bridge), :func:`multilevel_quasi_monte_carlo`; :func:`to_accuracy` chooses among
   them from a pilot run for a requested RMSE, among estimator objects (:class:`PlainMonteCarlo`,
   :class:`Richardson`, :class:`Multilevel`, :class:`ControlVariate`, :class:`QuasiMonteCarlo`,
@@ -65,6 +66,7 @@ from ._fokker_planck import (
     fokker_planck as fokker_planck,
     stationary_fokker_planck as stationary_fokker_planck,
 )
+from ._martingale import martingale_control_variate as martingale_control_variate
 from ._multilevel import MultilevelEstimate as MultilevelEstimate, multilevel_monte_carlo as multilevel_monte_carlo
 from ._multilevel_qmc import (
     multilevel_quasi_monte_carlo as multilevel_quasi_monte_carlo,
