@@ -82,7 +82,8 @@ def hand_written(eps, nu) -> tuple[StochasticSystem, jax.Array]:
 
 
 def _scene(cls, eps, nu):
-    scene = cls(eps=eps, nu=nu)
+    """A shipped scene at friction ``eps``, its first noise intensity (``Scene.intensities``) at ``nu``."""
+    scene = cls(eps=eps, **{cls.intensities[0]: nu})
     return scene.build(), scene.initial_state()
 
 
@@ -129,9 +130,40 @@ def entry_sensitivities(cell: Cell, eps, nu):
     return jnp.sum(sens.mean[-1]) + jnp.trace(sens.cov[-1]) + jnp.sum(sens.d_mean[0, -1])
 
 
+def _estimate_statistic(est) -> jax.Array:
+    """The estimate's value of :func:`_statistic`: its means and covariance diagonal at t1."""
+    return jnp.sum(est.mean[-1]) + jnp.trace(est.cov[-1])
+
+
+def entry_quasi_monte_carlo(cell: Cell, eps, nu):
+    system, y0 = SCENE_MAKERS[cell.scene](eps, nu)
+    y0 = jnp.asarray(y0, cell.precision)
+    est = nhsde.statistics.quasi_monte_carlo(
+        system, y0, KEY, n_paths=N_PATHS, replicates=4, t1=T1, dt=T1 / 4, solver=cell.solver
+    )  # (a Brownian bridge over a power of two of steps)
+    return _estimate_statistic(est)
+
+
+def entry_extrapolate(cell: Cell, eps, nu):
+    system, y0 = SCENE_MAKERS[cell.scene](eps, nu)
+    y0 = jnp.asarray(y0, cell.precision)
+    est = nhsde.statistics.extrapolate(system, y0, KEY, n_paths=N_PATHS, t1=T1, dt=DT, solver=cell.solver)
+    return _estimate_statistic(est)
+
+
+def entry_normal_approximation(cell: Cell, eps, nu):
+    """The moment equations (no paths, no solver): the same scalar of the Gaussian closure's moments."""
+    system, y0 = SCENE_MAKERS[cell.scene](eps, nu)
+    y0 = jnp.asarray(y0, cell.precision)
+    return _estimate_statistic(nhsde.statistics.normal_approximation(system, y0, t1=T1, dt=DT))
+
+
 ENTRY_POINTS: dict[str, Callable] = {
     "simulate": entry_simulate,
     "moment_sensitivities": entry_sensitivities,
+    "quasi_monte_carlo": entry_quasi_monte_carlo,
+    "extrapolate": entry_extrapolate,
+    "normal_approximation": entry_normal_approximation,
 }
 
 
@@ -268,7 +300,7 @@ BY_COST = {
     "transform": (
         "jit∘vmap∘jacfwd", "value_and_grad", "jit∘grad", "grad", "jit∘jacfwd", "jacfwd", "vmap", "jit", "plain",
     ),
-    "entry": ("moment_sensitivities", "simulate"),
+    "entry": ("extrapolate", "quasi_monte_carlo", "moment_sensitivities", "normal_approximation", "simulate"),
 }  # fmt: skip
 
 
