@@ -98,6 +98,32 @@ def test_naive_sleigh_drifts_forward_by_the_mean_balance():
     assert abs((kin_v + kin_w) / 2 - 1) <= 4 * np.hypot(se_v, se_w) / 2
 
 
+LOAD = 0.1  # the load force F, small against the naive drive m·2ε⟨v⟩ ≈ 0.23
+
+
+@pytest.mark.parametrize("model", ["naive", "soft"])
+def test_work_against_a_load_only_the_naive_model_extracts_it(model):
+    """A constant load ``F`` along ``−e₁``: the power extracted against it, ``F⟨v⟩``, is positive in the naive model
+    and not in the soft one (the second law: one bath does no net work in a steady state).
+
+    Soft knife: a free rigid body, ``d(∂T/∂q̇) − ∂T/∂q = (−D q̇ + f) dt + √(2kT) D^{1/2} dW``, with the load ``f``
+    (``D`` friction and contact).  In a steady state the entropy production ``Q̇/kT ≥ 0`` (``Q̇`` the heat into the
+    bath, Sekimoto) and the energy balance ``d⟨T⟩/dt = ⟨f·q̇⟩ − Q̇ = 0`` give ``−F⟨v⟩ = ⟨f·q̇⟩ ≥ 0``: ``F⟨v⟩ ≤ 0``
+    (linear response: ``≈ −F²/(2εm)``).
+    Naive model: its constrained flow is not volume-preserving (``div = −(ma/J) v``), so Gibbs is not stationary,
+    the argument fails, and ``⟨v⟩ = (a⟨ω²⟩ − F/m)/(2ε) > 0`` for small ``F`` (the mean balance of ``v``).
+    """
+    y = _stationary(model, load=LOAD)
+    v = y[:, 0]
+    power, se = _mean_se(LOAD * v)
+    if model == "naive":
+        assert power >= 5 * se, (power, se)  # measured 0.0143 ± 0.0006
+        mean, se_balance = _mean_se(v - (OFFSET * y[:, 1] ** 2 - LOAD / MASS) / (2 * EPS))
+        assert abs(mean) <= 4 * se_balance, (mean, se_balance)
+    else:
+        assert power <= 2 * se, (power, se)  # measured −0.0090 ± 0.0006
+
+
 def _relaxation(gamma, ts):
     """The soft sleigh at ``kT = ε = 0`` from ``v = w = 0``, ``ω = 1``: ``(v, ω, θ)`` at ``ts`` (Tsit5, tight)."""
     scene = ChaplyginSleighInBath(model="soft", eps=0.0, kT=0.0, gamma=gamma, mass=MASS, inertia=INERTIA, offset=OFFSET)
@@ -202,6 +228,68 @@ def test_explicit_solver_past_the_contact_stability_limit_is_refused():
             nhsde.simulate(system, y0, KEY, dt=0.01, solver=solver, **run)
     ens = nhsde.simulate(system, y0, KEY, dt=0.01, solver="exponential", **run)
     assert np.all(np.isfinite(np.asarray(ens.mean)))
+
+
+# ---------------------------------------------------------------- the stiff extreme: γ up to 10⁶ at one step
+
+STIFF_DT, STIFF_T1, STIFF_PATHS = 0.01, 2.0, 4096
+
+
+def _gibbs_velocities(n):
+    """``(v, w, ω) ~ N(0, kT M⁻¹)``, ``M`` the body-frame mass matrix of ``T``: stationary for every ``γ``."""
+    mass = np.array([[MASS, 0, 0], [0, MASS, MASS * OFFSET], [0, MASS * OFFSET, J]])
+    z = np.asarray(jax.random.normal(jax.random.fold_in(KEY, 7), (n, 3)), np.float64)
+    return jnp.asarray(z @ np.linalg.cholesky(KT * np.linalg.inv(mass)).T, jnp.float32)
+
+
+@functools.cache
+def _exponential_at(gamma):
+    """The soft sleigh from Gibbs, ``solver="exponential"`` at ``dt = 0.01`` whatever ``γ``: velocities at
+    ``t = 1, 2`` averaged per path, and the step count."""
+    scene = ChaplyginSleighInBath(model="soft", drift=False, eps=EPS, kT=KT, gamma=gamma, offset=OFFSET)
+    ens = nhsde.simulate(
+        scene.build(),
+        _gibbs_velocities(STIFF_PATHS),
+        KEY,
+        n_paths=STIFF_PATHS,
+        t1=STIFF_T1,
+        dt=STIFF_DT,
+        solver="exponential",
+        save=nhsde.Save(n=3, paths=True),
+    )
+    return np.asarray(ens.paths, np.float64)[:, 1:, :], ens
+
+
+def _contact_rate(gamma):
+    """The fastest damping rate, the largest eigenvalue of ``M⁻¹ diag(2εm, γ, 2εJ)``: ``≈ γ (1/m + a²/I)``."""
+    mass = np.array([[MASS, 0, 0], [0, MASS, MASS * OFFSET], [0, MASS * OFFSET, J]])
+    return float(np.max(np.linalg.eigvals(np.linalg.solve(mass, np.diag([2 * EPS * MASS, gamma, 2 * EPS * J]))).real))
+
+
+@pytest.mark.parametrize("gamma", [1e2, 1e4, 1e6])
+def test_exponential_solver_takes_one_step_whatever_the_contact_viscosity(gamma):
+    """``γ`` up to 10⁶ at ``dt = 0.01`` (``λ dt`` up to 2·10⁴): the exponential solver runs the same 200 steps,
+    finite, where Euler, Heun and weak2 are refused before the run; its contact mode is damped, with the
+    stationary variance of exponential Euler on a mode of rate ``λ``, ``tanh(λh/2)/(λh/2)`` times Gibbs's:
+
+    the step ``w ← e^{−λh} w + φ₁(−λh) σ ΔW`` has stationary variance
+    ``σ² h φ₁²/(1 − e^{−2λh}) = (σ²/2λ) · tanh(λh/2)/(λh/2)`` (``φ₁(x) = (eˣ − 1)/x``), against Gibbs's
+    ``σ²/(2λ)``: the contact energy ``(mI/J)⟨w²⟩/2`` is ``kT/2`` times that factor (0.76, 0.01, 10⁻⁴ here;
+    measured 0.752 ± 0.012, 0.00991 ± 0.00015, 9.91·10⁻⁵ ± 1.5·10⁻⁶).  Stable is not exact: a cold contact is the
+    naive model's ideal knife, and the sleigh drifts forward (``⟨v⟩ = 0.161 ± 0.009``, ``0.166 ± 0.009`` at
+    ``γ = 10⁴, 10⁶``); the exact noise of the linear flow cures it (``test_internal_finite_temperature``).
+    """
+    scene = ChaplyginSleighInBath(model="soft", drift=False, eps=EPS, kT=KT, gamma=gamma, offset=OFFSET)
+    for solver in ("euler", "heun", "weak2"):
+        with pytest.raises(ValueError, match="unstable on this system's linear friction"):
+            nhsde.simulate(
+                scene.build(), scene.initial_state(), KEY, n_paths=64, t1=STIFF_T1, dt=STIFF_DT, solver=solver
+            )
+    y, ens = _exponential_at(gamma)
+    assert np.all(np.isfinite(y)) and ens.dt == STIFF_DT and int(ens.n_used) == STIFF_PATHS  # 200 steps, all kept
+    half = _contact_rate(gamma) * STIFF_DT / 2
+    mean, se = _mean_se(((MASS * INERTIA / J) * y[..., 1] ** 2 / KT).mean(axis=1))
+    assert abs(mean - np.tanh(half) / half) <= 4 * se, (mean, se, np.tanh(half) / half)
 
 
 # ---------------------------------------------------------------- the spec route: SoftConstraint and temperature

@@ -14,7 +14,7 @@ import pytest
 
 import nhsde
 from nhsde.scenes import ChaplyginSleigh
-from nhsde.statistics._martingale import martingale_system
+from nhsde.statistics._martingale import fitted_system, martingale_system
 
 SCENE = ChaplyginSleigh(eps=0.3, nu=1.0)
 N = 2**16
@@ -42,3 +42,20 @@ def test_every_raw_control_has_mean_zero(solver, basis):
     np.testing.assert_allclose(
         np.asarray(ens.mean[:, : system.state_dim]), np.asarray(plain.mean), rtol=1e-12, atol=1e-15
     )
+
+
+@pytest.mark.parametrize(("solver", "basis"), [("weak2", "cubic"), ("euler", "poor")])
+def test_the_fitted_combinations_are_those_of_the_controls_on_the_same_paths(solver, basis):
+    """The main run's ``R`` fitted combinations ``M̃_r`` (:func:`fitted_system`, the polynomial form of the monomial
+    basis or the callable's rows) equal ``β_r·M`` of the ``K`` controls on the same paths, to rounding."""
+    system, y0 = SCENE.build(), SCENE.initial_state()
+    augmented = martingale_system(system, y0, _poor if basis == "poor" else basis, time_degree=2, t1=1.0)
+    d, size = system.state_dim, augmented.state_dim - system.state_dim
+    beta = jnp.asarray(np.random.default_rng(0).normal(size=(3, size)))
+    fitted = fitted_system(augmented, d, beta)
+    args = dict(n_paths=64, t1=1.0, dt=0.125, solver=solver)
+    full = nhsde.simulate(augmented, jnp.concatenate([y0, jnp.zeros(size)]), jax.random.key(4), **args)
+    few = nhsde.simulate(fitted, jnp.concatenate([y0, jnp.zeros(3)]), jax.random.key(4), **args)
+    m, combined = np.asarray(full.mean[:, d:]), np.asarray(few.mean[:, d:])
+    np.testing.assert_allclose(combined, m @ np.asarray(beta).T, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(few.mean[:, :d]), np.asarray(full.mean[:, :d]), rtol=1e-12, atol=1e-15)

@@ -44,11 +44,12 @@ which cannot repair positive correlations: ``χ²`` sees only the variances.
 from __future__ import annotations
 
 import abc
+import contextlib
 import dataclasses
 import functools
 import warnings
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import diffrax as dfx
 import equinox as eqx
@@ -58,7 +59,9 @@ import numpy as np
 from jaxtyping import Array, PRNGKeyArray
 
 from .._ensemble import Save
+from .._misc import real_state
 from .._options import Batching, FixedSteps, RunOptions
+from .._params import checked_on_host
 from .._simulate import simulate
 from .._system import StochasticSystem
 from ..statistics import moment_sensitivities, normal_approximation
@@ -81,7 +84,14 @@ _MAX_JACOBIAN_RELATIVE_SE = 0.3
 
 
 class AbstractStatisticsModel(eqx.Module):
-    """Model means and covariances of named components at given times."""
+    """Model means and covariances of named components at given times.
+
+    ``exact_in_range``: the model's moments need no run-time check at parameters inside their ranges (no
+    simulation whose step or outcome depends on them), so a fit, whose search stays inside the ranges, traces its
+    programs without the parameters' host callbacks and they enter the persistent compilation cache.
+    """
+
+    exact_in_range: ClassVar[bool] = False
 
     @abc.abstractmethod
     def moments(self, system: StochasticSystem, ts: tuple[float, ...], names: tuple[str, ...]) -> tuple[Array, Array]:
@@ -119,15 +129,6 @@ def check_step_budget(t0: float, t1: float, steps: FixedSteps, remedy: str) -> i
     except ValueError as e:
         reason, cut, _ = str(e).partition("; raise it with")
         raise ValueError(f"{reason}; {remedy}" if cut else str(e)) from None
-
-
-def _real_state(name: str, value):
-    """Refuse a complex ``y0`` or ``cov0``: the solvers would take its real part alone."""
-    if value is not None and jnp.iscomplexobj(value):
-        raise TypeError(
-            f"{name} has the complex dtype {jnp.asarray(value).dtype}; the state is real (its imaginary part "
-            "would be lost): give real and imaginary parts as separate components."
-        )
 
 
 def _save_grid(ts, t0: float, model: str) -> np.ndarray:
@@ -176,7 +177,7 @@ class Simulated(AbstractStatisticsModel):
     t0: float = eqx.field(static=True, default=0.0)
 
     def __check_init__(self):
-        _real_state("y0", self.y0)
+        real_state("y0", self.y0)
 
     def check_times(self, ts) -> None:
         """Observation times on the save grid from ``t0``, within the step budget ``steps.max_steps``."""
@@ -219,18 +220,7 @@ class Simulated(AbstractStatisticsModel):
         return columns(sens.d_mean, sens.d_cov), columns(sens.d_mean_se, sens.d_cov_se)
 
     def jacobian_se(self, system, ts, names, vary):
-        try:
-            return self.sensitivities(system, ts, names, vary)[1]
-        except TypeError as e:  # as in _statistics_jacobian: a solver without forward mode
-            if "custom_vjp" not in str(e):
-                raise
-        warnings.warn(
-            f"Simulated: the Monte-Carlo error of ∂s/∂θ needs forward mode, which solver={self.solver!r} lacks "
-            "(diffrax's stochastic Runge–Kutta solvers have it with scan_kind='lax'); it is reported as NaN.",
-            UserWarning,
-            stacklevel=3,
-        )
-        return np.full((statistic_size(len(ts), len(names)), len(vary)), np.nan)
+        return self.sensitivities(system, ts, names, vary)[1]
 
     def moments(self, system, ts, names):
         ens, index = self._run(system, ts, names, paths=False)
@@ -266,6 +256,8 @@ class MomentEquations(AbstractStatisticsModel):
         max_steps: the step budget (as :class:`~nhsde.FixedSteps`'): a longer span is refused before any run.
     """
 
+    exact_in_range: ClassVar[bool] = True
+
     y0: Array
     cov0: Array | None = None
     dt: float = eqx.field(static=True, default=0.01)
@@ -274,8 +266,9 @@ class MomentEquations(AbstractStatisticsModel):
     max_steps: int = eqx.field(static=True, default=FixedSteps.max_steps)
 
     def __check_init__(self):
-        _real_state("y0", self.y0)
-        _real_state("cov0", self.cov0)
+        real_state("y0", self.y0)
+        if self.cov0 is not None:
+            real_state("cov0", self.cov0)
 
     def check_times(self, ts) -> None:
         """Observation times on the save grid from ``t0``, within the step budget ``max_steps``."""
@@ -316,6 +309,8 @@ class ClosedForm(AbstractStatisticsModel):
         fn: ``fn(params, ts) -> (mean (T, k), cov (T, k, k))``, differentiable in ``params``.
         cross: optional ``cross(params, ts) -> (T, T, k, k)``, the two-time covariance of Gaussian paths.
     """
+
+    exact_in_range: ClassVar[bool] = True
 
     fn: Callable = eqx.field(static=True)
     cross: Callable | None = eqx.field(static=True, default=None)
@@ -358,7 +353,11 @@ class _Problem(eqx.Module):
     used: tuple[int, ...] = eqx.field(static=True)  # Observations.used: the statistics of nonzero variance
 
     def theta(self, phi):
-        return jnp.stack([p if lo is None else lo + jnp.exp(p) for p, lo in zip(phi, self.lower)])
+        # |φ| ≤ 0.9·log(max float): θ − lower = e^φ stays finite and positive (normal) in the precision of φ
+        bound = 0.9 * float(np.log(jnp.finfo(phi.dtype).max))
+        return jnp.stack(
+            [p if lo is None else lo + jnp.exp(jnp.clip(p, -bound, bound)) for p, lo in zip(phi, self.lower)]
+        )
 
     def system_at(self, theta) -> StochasticSystem:
         params = self.system.params.replace(**{n: theta[i] for i, n in enumerate(self.vary)})
@@ -388,18 +387,9 @@ def _step(phi, state, problem: _Problem, optimizer, reuse: bool):
 
 
 @eqx.filter_jit
-def _jacobian(theta, problem: _Problem, forward: bool):
-    return (jax.jacfwd if forward else jax.jacrev)(problem.statistics)(theta)
-
-
 def _statistics_jacobian(theta, problem: _Problem):
-    """``∂s/∂θ``: forward mode (a few parameters), reverse mode where a solver has no JVP (diffrax's SRK scan)."""
-    try:
-        return _jacobian(theta, problem, True)
-    except TypeError as e:
-        if "custom_vjp" not in str(e):
-            raise
-        return _jacobian(theta, problem, False)
+    """``∂s/∂θ`` in forward mode (a few parameters; every solver of ``simulate`` has it)."""
+    return jax.jacfwd(problem.statistics)(theta)
 
 
 @functools.cache
@@ -602,8 +592,11 @@ def estimate(
     state = jax.tree.map(lambda x: jnp.asarray(x, jnp.result_type(x)), optimizer.init(phi))
     reuse = optax.tree_utils.tree_get(state, "value") is not None
     history, converged, steps = [], False, 0
+    # θ = lower + e^φ (clipped) is inside every range: an exact model's programs need none of the run-time checks
+    in_range = checked_on_host if model.exact_in_range else contextlib.nullcontext
     for steps in range(1, max_steps + 1):
-        new_phi, state, value, grad = _step(phi, state, problem, optimizer, reuse)
+        with in_range():
+            new_phi, state, value, grad = _step(phi, state, problem, optimizer, reuse)
         loss = float(np.asarray(value))
         history.append([loss, *np.asarray(problem.theta(phi))])
         if not np.isfinite(loss):
@@ -614,7 +607,8 @@ def estimate(
         phi = new_phi
     theta = problem.theta(phi)
 
-    g = np.asarray(_statistics_jacobian(theta, problem), np.float64)
+    with in_range():
+        g = np.asarray(_statistics_jacobian(theta, problem), np.float64)
     cov_model = np.asarray(model.noise_covariance(problem.system_at(theta), problem.ts, observed.names), np.float64)
     cov_model = cov_model[both]
     w_g = np.linalg.solve(cov_obs, g)  # Σ_obs⁻¹ G
@@ -626,7 +620,8 @@ def estimate(
         )
     h_inv = np.linalg.inv(fisher)
     cov = h_inv + h_inv @ w_g.T @ cov_model @ w_g @ h_inv
-    r = np.asarray(problem.statistics(theta), np.float64) - observed_s
+    with in_range():
+        r = np.asarray(problem.statistics(theta), np.float64) - observed_s
     chi2 = float(r @ np.linalg.solve(cov_obs + cov_model, r))
     g_se = np.asarray(model.jacobian_se(problem.system_at(theta), problem.ts, observed.names, vary), np.float64)
     g_se = g_se[used]

@@ -20,10 +20,20 @@ friction is ``R = ε (m v² + J ω²)``.  The bath has temperature ``kT``.
   ``exp(−T/kT)``, so ``m⟨v²⟩ = m⟨(w + aω)²⟩ = I⟨ω²⟩ = kT`` and ``⟨v⟩ = 0``.  As ``γ → ∞`` at ``kT = 0`` the
   ideal sleigh returns, on the contact time scale ``m/γ``.
 
+A load ``F`` (``load``, default 0) pulls along ``−e₁`` and adds ``−F/m`` to ``v̇`` in every model (no torque: its
+line passes through ``P`` and the centre of mass).  The power extracted against it is ``F⟨v⟩``.  In the soft model
+it is ``≤ 0``: with ``f`` the load and ``D`` the friction and contact, the steady state's energy balance
+``0 = d⟨T⟩/dt = ⟨f·q̇⟩ − Q̇`` and its entropy production ``Q̇/kT ≥ 0`` (``Q̇`` the heat into the bath; the
+steady entropy production of a Langevin system, Sekimoto) give ``−F⟨v⟩ ≥ 0``: one bath does no net work.  The naive
+model's constrained flow compresses phase space (``div = −(ma/J) v``), Gibbs is not its stationary law, the bound
+does not hold, and ``⟨v⟩ = (a⟨ω²⟩ − F/m)/(2ε) > 0`` for a small ``F``: work from a single bath.
+
 Positions (``drift=True``): ``ẋ = v cos θ − w sin θ``, ``ẏ = v sin θ + w cos θ``, ``θ̇ = ω``.  The velocity
 damping is linear with constant coefficients in ``(v, w, ω)`` (the body frame), so it is declared as the
 system's ``linear_drift``: explicit solvers past their stability limit on ``γ`` are refused before the run,
-and the exponential solver treats the stiff contact exactly.
+and the exponential solver treats the stiff contact's damping exactly (not yet its noise: at ``λh ≫ 1`` the shipped
+step leaves the contact cold, ``tanh(λh/2)/(λh/2)`` of its Gibbs variance, which is the naive model; docs guide
+"Constraints at finite temperature").
 """
 
 from __future__ import annotations
@@ -49,6 +59,7 @@ class BathSleighParameters(AbstractParameters):
     mass: jnp.ndarray = parameter(default=1.0, lower=0.0, strict=True, doc="mass m")
     inertia: jnp.ndarray = parameter(default=1.0, lower=0.0, strict=True, doc="central moment of inertia I")
     offset: jnp.ndarray = parameter(default=1.0, lower=0.0, doc="distance a from the knife to the centre of mass")
+    load: jnp.ndarray = parameter(default=0.0, lower=0.0, doc="load force F along −e₁, opposing forward motion")
 
 
 def _j(p):
@@ -59,7 +70,8 @@ def _j(p):
 
 
 def _ideal_velocity_drift(v, w, p):
-    return jnp.stack([p.offset * w**2 - 2 * p.eps * v, -(p.mass * p.offset / _j(p)) * v * w - 2 * p.eps * w])
+    forward = p.offset * w**2 - 2 * p.eps * v - p.load / p.mass
+    return jnp.stack([forward, -(p.mass * p.offset / _j(p)) * v * w - 2 * p.eps * w])
 
 
 def _naive_noise(p, dtype):
@@ -90,7 +102,8 @@ def _soft_linear(p):
 
 def _soft_velocity_drift(v, w, omega, p):
     linear = _soft_linear(p).astype(v.dtype) @ jnp.stack([v, w, omega])
-    return linear + jnp.stack([omega * w + p.offset * omega**2, -omega * v, jnp.zeros_like(v)])
+    forward = omega * w + p.offset * omega**2 - p.load / p.mass
+    return linear + jnp.stack([forward, -omega * v, jnp.zeros_like(v)])
 
 
 def _soft_noise(p, dtype):
@@ -213,7 +226,8 @@ class ChaplyginSleighInBath(AbstractScene):
     Arguments:
         model: ``"soft"``, ``"naive"`` or ``"ideal"``.
         drift: keep the knife point ``(x, y)`` and heading ``θ`` in the state.
-        **params: the :class:`BathSleighParameters` (``eps``, ``kT``, ``gamma``, ``mass``, ``inertia``, ``offset``).
+        **params: the :class:`BathSleighParameters` (``eps``, ``kT``, ``gamma``, ``mass``, ``inertia``, ``offset``,
+            ``load``).
 
     Examples:
         >>> import nhsde

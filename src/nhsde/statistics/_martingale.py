@@ -33,8 +33,16 @@ independent of ``Xₙ`` and centred, so ``E M_N = 0`` whatever ``β`` is: a poor
   formulas with ``β`` and ``c`` fixed, from the per-path tangents of ``Y`` and ``M`` (forward mode).  ``∂M`` has mean
   zero too (``∂ψ(Xₙ)`` is adapted), so the derivative estimates are unbiased for the scheme's derivative.
 
-Cost: one solve of ``n_paths + n_pilot`` paths of the augmented state (``d + K`` components; ``K`` the basis
-size ``× (time_degree + 1)``), and one ``K × K`` pseudo-inverse per save time.
+- **The run carries the fitted combinations only.**  The pilot solves all ``K`` controls; the run then accumulates
+  ``M̃_r = Σₙ Z_r(tₙ, Xₙ)·ΔWₙ``, ``Z_r = Σ_k β_rk ψ_k``, one component per saved entry after ``t0`` (a
+  covariance's ``(i, j)`` and ``(j, i)`` share one), which equals ``β_r·M`` on the same increments
+  (:func:`fitted_system`), whenever those ``R`` are fewer than ``K``.  For the monomial basis ``Z_r = ∇g_r(τ, x)ᵀ b``
+  with ``g_r = Σ β_rk τʲ x^α``, evaluated as a polynomial of degree ≤ 2 in ``x`` on the noisy rows only; ``β`` is data
+  of the program (one compile for every fit).
+
+Cost: a pilot of ``n_pilot`` paths of the state with ``K`` extra components (``K`` the basis size ``×
+(time_degree + 1)``), one ``K × K`` pseudo-inverse per save time, and the run of ``n_paths`` paths with
+``min(R, K)`` extra components.
 """
 
 from __future__ import annotations
@@ -43,6 +51,7 @@ import dataclasses
 import itertools
 import math
 from collections.abc import Callable
+from typing import Any
 
 import diffrax as dfx
 import equinox as eqx
@@ -101,6 +110,15 @@ class _Basis(eqx.Module):
     time_degree: int = eqx.field(static=True)
     t0: float = eqx.field(static=True)
     t1: float = eqx.field(static=True)
+    noisy: tuple[int, ...] = eqx.field(static=True, default=())
+
+    def powers(self, t, dtype):
+        """``(τʲ)ⱼ``, ``j ≤ time_degree``."""
+        tau = (t - self.t0) / (self.t1 - self.t0)
+        powers = [jnp.ones((), dtype)]
+        for _ in range(self.time_degree):
+            powers.append(powers[-1] * tau)
+        return jnp.stack(powers).astype(dtype)
 
     def __call__(self, t, x, params, b):
         if self.user is not None:
@@ -117,12 +135,38 @@ class _Basis(eqx.Module):
                 factors = np.repeat(np.arange(d), reduced)
                 index[k, l, : factors.size] = factors
             extended = jnp.concatenate([x, jnp.ones((1,), x.dtype)])
-            psi = (jnp.asarray(alpha, x.dtype) * jnp.prod(extended[index], axis=-1)).astype(b.dtype) @ b
-        tau = (t - self.t0) / (self.t1 - self.t0)
-        powers = [jnp.ones((), b.dtype)]
-        for _ in range(self.time_degree):
-            powers.append(powers[-1] * tau)
-        return (jnp.stack(powers).astype(b.dtype)[:, None, None] * psi[None]).reshape(-1, b.shape[1])
+            gradients = jnp.asarray(alpha, x.dtype) * jnp.prod(extended[index], axis=-1)
+            rows = np.asarray(self.noisy or range(d))  # the noiseless rows of b are zero
+            psi = gradients[:, rows].astype(b.dtype) @ b[rows]
+        powers = self.powers(t, b.dtype)
+        return (powers[:, None, None] * psi[None]).reshape(-1, b.shape[1])
+
+    def polynomial(self, beta):
+        """The fitted rows ``Σ_k β_rk ψ_k = ∇g_r(τ, x)ᵀ b`` of the monomial basis as the coefficients of
+        ``∂g_r/∂x_i`` on the noisy rows ``i``, a polynomial of degree ≤ 2 in ``x``: ``(C0 (R, J, n), C1 (R, J, n, d),
+        C2 (R, J, n, d, d) or None)`` from ``β (R, J·K)`` (module; ``J = time_degree + 1``)."""
+        alpha = np.array(self.exponents)
+        n_k, d = alpha.shape
+        rows = self.noisy or tuple(range(d))
+        top = int(alpha.sum(axis=1).max()) - 1  # the gradient's degree
+        sizes = (1, d, d * d)[: top + 1]
+        maps = [np.zeros((n_k, len(rows), size)) for size in sizes]
+        for k in range(n_k):
+            for i, row in enumerate(rows):
+                if alpha[k, row] == 0:
+                    continue
+                reduced = alpha[k].copy()
+                reduced[row] -= 1
+                factors = np.repeat(np.arange(d), reduced)  # x^(α − e_i) = Π x_factors
+                where = 0 if factors.size == 0 else (factors[0] if factors.size == 1 else factors[0] * d + factors[1])
+                maps[factors.size][k, i, where] += alpha[k, row]
+        r = beta.shape[0]
+        beta = beta.reshape(r, self.time_degree + 1, n_k)
+        out = [jnp.einsum("rjk,kis->rjis", beta, jnp.asarray(m, beta.dtype)) for m in maps]
+        c0 = out[0][..., 0]
+        c1 = out[1] if top >= 1 else None
+        c2 = out[2].reshape(out[2].shape[:-1] + (d, d)) if top >= 2 else None
+        return c0, c1, c2
 
 
 class _Drift(eqx.Module):
@@ -159,6 +203,87 @@ class _OnState(eqx.Module):
         return self.fn(t, y[: y.shape[0] - self.size], params)
 
 
+class _Fitted(eqx.Module):
+    """The system's parameters with the fitted rows' coefficients, which are data (one program for every fit)."""
+
+    inner: Any
+    coefficients: tuple
+
+    def replace(self, **changes):
+        return _Fitted(self.inner.replace(**changes), self.coefficients)
+
+    def __getattr__(self, name):
+        if name.startswith("_") or name in ("inner", "coefficients"):
+            raise AttributeError(name)
+        return getattr(self.inner, name)
+
+
+class _Unwrapped(eqx.Module):
+    """A drift or observable of the system called with the parameters inside :class:`_Fitted`."""
+
+    fn: Callable = eqx.field(static=True)
+
+    def __call__(self, t, y, params):
+        return self.fn(t, y, params.inner)
+
+
+class _FittedDiffusion(eqx.Module):
+    """``(b(x), Z_r(t, x))``: the system's diffusion and the fitted combinations ``Z_r = Σ_k β_rk ψ_k`` only."""
+
+    diffusion: Callable = eqx.field(static=True)
+    basis: _Basis = eqx.field(static=True)
+    size: int = eqx.field(static=True)
+
+    def __call__(self, t, y, params):
+        x = y[: y.shape[0] - self.size]
+        b = self.diffusion(t, x, params.inner)
+        powers = self.basis.powers(t, b.dtype)
+        if self.basis.user is not None:
+            (weights,) = params.coefficients  # (R, J, K)
+            psi = jnp.asarray(self.basis.user(t, x, params.inner), b.dtype)
+            z = jnp.einsum("j,rjk->rk", powers, weights) @ psi
+        else:
+            c0, c1, c2 = params.coefficients
+            gradient = jnp.einsum("j,rjn->rn", powers, c0)
+            if c1 is not None:
+                gradient = gradient + jnp.einsum("j,rjnl,l->rn", powers, c1, x)
+            if c2 is not None:
+                gradient = gradient + jnp.einsum("j,rjnlp,l,p->rn", powers, c2, x, x)
+            rows = np.asarray(self.basis.noisy or range(x.shape[0]))
+            z = gradient @ b[rows]
+        return jnp.concatenate([b, z])
+
+
+def fitted_system(augmented: StochasticSystem, d: int, beta) -> StochasticSystem:
+    """The Itô system of :func:`martingale_system` ``augmented`` (``d`` the system's components) with only the
+    fitted combinations ``M̃_r = Σ_k β_rk M_k`` (``β (R, K)``, outside the derivative) as extra components, named
+    ``'@martingale<r>'``; the same increments' control, at the cost of ``R`` rows instead of ``K``."""
+    diffusion = augmented.diffusion_fn
+    assert isinstance(diffusion, _Diffusion)
+    basis, r = diffusion.basis, beta.shape[0]
+    beta = jax.lax.stop_gradient(beta)
+    if basis.user is not None:
+        coefficients = (beta.reshape(r, basis.time_degree + 1, -1),)
+    else:
+        coefficients = basis.polynomial(beta)
+    drift = augmented.drift_fn
+    assert isinstance(drift, _Drift)
+    return StochasticSystem(
+        drift_fn=_Drift(_Unwrapped(drift.drift), r),
+        diffusion_fn=_FittedDiffusion(diffusion.diffusion, basis, r),
+        params=_Fitted(augmented.params, coefficients),
+        layout=StateLayout(
+            augmented.layout.names[:d] + tuple(f"{_CONTROL}{k}" for k in range(r)),
+            augmented.layout.roles[:d] + ("independent_coordinate",) * r,
+        ),
+        noise_dim=augmented.noise_dim,
+        interpretation="ito",
+        additive_noise=False,
+        observables=tuple((name, _OnState(_Unwrapped(fn.fn), r)) for name, fn in augmented.observables),
+        noise=augmented.noise,
+    )
+
+
 def _noisy_rows(system: StochasticSystem, y0) -> tuple[int, ...]:
     """Rows of ``b`` not zero at ``y0`` or at a perturbed state (traced values read as ones); all where unknown."""
     d = system.state_dim
@@ -185,14 +310,15 @@ def _basis(system: StochasticSystem, y0, basis, time_degree: int, t0: float, t1:
                 f"basis={basis!r} returns shape {getattr(shape, 'shape', shape)}; a callable basis returns "
                 f"(K, noise_dim) = (K, {system.noise_dim}) rows ψ_k of Z = Σ β_k ψ_k."
             )
-        return _Basis((), basis, time_degree, t0, t1)
+        return _Basis((), basis, time_degree, t0, t1, ())
     if basis not in _BASES:
         raise ValueError(
             f"basis={basis!r}; allowed: {', '.join(map(repr, _BASES))} (gradients of monomials of the state of that "
             "degree times b) or a callable (t, x, params) -> (K, noise_dim)."
         )
-    exponents = _monomials(system.state_dim, _BASES.index(basis) + 1, _noisy_rows(system, y0))
-    return _Basis(exponents, None, time_degree, t0, t1)
+    noisy = _noisy_rows(system, y0)
+    exponents = _monomials(system.state_dim, _BASES.index(basis) + 1, noisy)
+    return _Basis(exponents, None, time_degree, t0, t1, noisy)
 
 
 def _size(basis: _Basis, system: StochasticSystem, y0) -> int:
@@ -326,6 +452,30 @@ def controlled_sensitivities(y, m, t_y, t_m, beta_mean, beta_cov, c):
     return d_mean, d_cov, d_mean_var, d_cov_var
 
 
+def _fitted_rows(n_save: int, k: int):
+    """``(select_mean (n, k, R), select_cov (n, k, k, R))``: 0/1 maps of each saved mean and covariance entry after
+    ``t0`` to its fitted combination ``r`` (a covariance's ``(i, j)`` and ``(j, i)`` share one), ``R = (n − 1)
+    (k + k(k + 1)/2)``; at ``t0`` every control is 0.  ``None`` for a single save."""
+    if n_save < 2:
+        return None
+    pairs = [(i, j) for i in range(k) for j in range(i, k)]
+    per = k + len(pairs)
+    r = (n_save - 1) * per
+    select_mean, select_cov = np.zeros((n_save, k, r)), np.zeros((n_save, k, k, r))
+    for s in range(1, n_save):
+        base = (s - 1) * per
+        for q in range(k):
+            select_mean[s, q, base + q] = 1.0
+        for p, (i, j) in enumerate(pairs):
+            select_cov[s, i, j, base + k + p] = select_cov[s, j, i, base + k + p] = 1.0
+    return select_mean, select_cov
+
+
+def _upper(select_cov):
+    """``select_cov`` with only the upper triangle ``i ≤ j`` kept: one ``β`` per fitted combination."""
+    return select_cov * np.triu(np.ones(select_cov.shape[1:3]))[None, :, :, None]
+
+
 def _reduction(plain, controlled):
     xp = array_module(plain, controlled)
     return xp.where(controlled > 0, plain / xp.where(controlled > 0, controlled, 1.0), xp.where(plain > 0, xp.inf, 1.0))
@@ -358,7 +508,8 @@ def martingale_control_variate(
     ``'weak2'`` or :class:`~nhsde.PlatenWeak2` (either increments).  ``basis``: ``'linear'``, ``'quadratic'``
     (default) or ``'cubic'`` (gradients of monomials of the state times ``b``), or a callable
     ``(t, x, params) -> (K, noise_dim)``; times ``τʲ``, ``j ≤ time_degree``.  ``n_pilot``: the fit's paths
-    (default ``20 K``, at least 1024; paths ``n_paths …`` of ``key``).  ``wrt``: scalar parameter names whose
+    (default ``10 K`` rounded up to 1024s, whose excess variance from the fit is about ``K/n_pilot``;
+    paths ``n_paths …`` of ``key``).  ``wrt``: scalar parameter names whose
     derivatives (``β`` fixed) are returned with standard errors; ``jax.grad`` through the estimate works too.
 
     Returns a :class:`ControlVariateEstimate`: ``plain`` the uncontrolled estimate of the same paths,
@@ -393,7 +544,7 @@ def martingale_control_variate(
     augmented = martingale_system(system, y0, basis, time_degree=time_degree, t0=options.t0, t1=options.t1)
     size = augmented.state_dim - system.state_dim
     if n_pilot is None:
-        n_pilot = RUN_PATHS * max(1, math.ceil(20 * size / RUN_PATHS))
+        n_pilot = RUN_PATHS * max(1, math.ceil(10 * size / RUN_PATHS))
     (n_pilot,) = checked_paths("n_pilot", n_pilot)
     if n_pilot < 2 * size:
         raise ValueError(
@@ -413,14 +564,30 @@ def martingale_control_variate(
 
     pilot = solve_paths(augmented, start, key, run, first_path=n_paths, n_paths=n_pilot)
     beta_mean, beta_cov, c = fit_coefficients(pilot[..., :k], pilot[..., k:])
-    paths, tangents = solve_paths_with_tangents(augmented, start, key, run, wrt, first_path=0, n_paths=n_paths)
+    del pilot
+    if array_module(beta_mean) is not np:
+        beta_mean, beta_cov, c = (jax.lax.stop_gradient(jnp.asarray(a, y0.dtype)) for a in (beta_mean, beta_cov, c))
+    # the run: each entry's control β·M is read from M (K components), or where fewer, from the fitted combinations
+    # M̃_r = β_r·M (R components) that the run accumulates alone; then "β" of the run selects each entry's M̃_r
+    solved, run_beta_mean, run_beta_cov = augmented, beta_mean, beta_cov
+    selection = _fitted_rows(save.n, k)
+    if selection is not None and selection[0].shape[-1] < size:
+        run_beta_mean, run_beta_cov = selection
+        xp = array_module(beta_mean)
+        rows = xp.einsum("nqr,nqK->rK", run_beta_mean, beta_mean)  # each row is one entry's β at one save time
+        rows = rows + xp.einsum("nijr,nijK->rK", _upper(run_beta_cov), beta_cov)
+        solved = fitted_system(augmented, system.state_dim, jnp.asarray(rows, y0.dtype))
+        fitted = tuple(solved.layout.names[system.state_dim :])
+        run = dataclasses.replace(run, save=Save(names=names + fitted, n=save.n, paths=True))
+        start = jnp.concatenate([y0, jnp.zeros((len(fitted),), y0.dtype)])
+    paths, tangents = solve_paths_with_tangents(solved, start, key, run, wrt, first_path=0, n_paths=n_paths)
     xp = array_module(paths, beta_mean)
     if xp is np:
         paths = np.asarray(paths, np.float64)
     else:
-        beta_mean, beta_cov, c = (jax.lax.stop_gradient(jnp.asarray(a, paths.dtype)) for a in (beta_mean, beta_cov, c))
+        run_beta_mean, run_beta_cov = (jnp.asarray(a, paths.dtype) for a in (run_beta_mean, run_beta_cov))
     y, m = paths[..., :k], paths[..., k:]
-    mean, cov, mean_var, cov_var = controlled_moments(y, m, beta_mean, beta_cov, c)
+    mean, cov, mean_var, cov_var = controlled_moments(y, m, run_beta_mean, run_beta_cov, c)
     plain_mean, plain_cov, plain_mean_var, plain_cov_var = paired_moments([y], [1.0])
     derivatives = None
     if wrt:
@@ -428,7 +595,7 @@ def martingale_control_variate(
         t_y, t_m = tangents[..., :k], tangents[..., k:]
         if xp is np:
             t_y, t_m = np.asarray(t_y, np.float64), np.asarray(t_m, np.float64)
-        d_mean, d_cov, d_mean_var, d_cov_var = controlled_sensitivities(y, m, t_y, t_m, beta_mean, beta_cov, c)
+        d_mean, d_cov, d_mean_var, d_cov_var = controlled_sensitivities(y, m, t_y, t_m, run_beta_mean, run_beta_cov, c)
         derivatives = Derivatives(d_mean, d_cov, safe_sqrt(d_mean_var), safe_sqrt(d_cov_var), wrt)
 
     ts = xp.linspace(options.t0, options.t1, save.n)
