@@ -199,14 +199,17 @@ def _finite_class(cls: type) -> type:
     solver keeps its type, name and fields."""
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        dynamic, static = eqx.partition((y0, args), eqx.is_array)
+        # every array argument is an input of the rule (an adaptive step's times, its bool `made_jump`, a Brownian
+        # tree's key are traced: closed over, a non-float tracer would be a constant of the rule's program, which
+        # cannot be lowered)
+        dynamic, static = eqx.partition((terms, t0, t1, y0, args, solver_state, made_jump), eqx.is_array)
 
         def plain(inputs):
-            y, a = eqx.combine(inputs, static)
-            return cls.step(self, terms, t0, t1, y, a, solver_state, made_jump)
+            terms_, t0_, t1_, y, a, state, jump = eqx.combine(inputs, static)
+            return cls.step(self, terms_, t0_, t1_, y, a, state, jump)
 
-        # values the step closes over (the increments, the time, a closure's parameters) become explicit inputs,
-        # so that the rule sees every value it is differentiated in
+        # values the step closes over (the increments, a closure's parameters) become explicit inputs too, so that
+        # the rule sees every value it is differentiated in
         converted, hoisted = jax.closure_convert(plain, dynamic)
         return _finite_step(lambda inputs, extra: converted(inputs, *extra), (dynamic, hoisted))
 
