@@ -52,14 +52,18 @@ def on_files(files, config):
             uri = path.relative_to(ROOT).as_posix()
             if files.get_file_from_path(uri) is None:
                 site, urls = config["site_dir"], config["use_directory_urls"]
-                files.append(File(uri, src_dir=str(ROOT), dest_dir=site, use_directory_urls=urls))
+                files.append(
+                    File(uri, src_dir=str(ROOT), dest_dir=site, use_directory_urls=urls)
+                )
     for problem in notebook_pair_problems() + notebook_output_problems():
         log.warning(problem)
     return files
 
 
 def _sources(root: Path):
-    return sorted(p for p in (root / "notebooks").glob("*.py") if not p.name.startswith("_"))
+    return sorted(
+        p for p in (root / "notebooks").glob("*.py") if not p.name.startswith("_")
+    )
 
 
 def _cells(path: Path):
@@ -76,7 +80,9 @@ def notebook_pair_problems(root: Path = ROOT) -> list[str]:
         paired = source.with_suffix(".ipynb")
         if not paired.exists():
             pair = f"jupytext --set-formats ipynb,py:percent notebooks/{source.name}"
-            problems.append(f"notebooks/{paired.name} is missing; run: {pair}, then: {EXECUTE} notebooks/{paired.name}")
+            problems.append(
+                f"notebooks/{paired.name} is missing; run: {pair}, then: {EXECUTE} notebooks/{paired.name}"
+            )
         elif _cells(source) != _cells(paired):
             problems.append(
                 f"notebooks/{paired.name} differs from notebooks/{source.name} (the executed source); "
@@ -98,7 +104,11 @@ def notebook_output_problems(root: Path = ROOT) -> list[str]:
         if not paired.exists():
             continue
         cells = json.loads(paired.read_text(encoding="utf-8"))["cells"]
-        counts = [c.get("execution_count") for c in cells if c["cell_type"] == "code" and "".join(c["source"]).strip()]
+        counts = [
+            c.get("execution_count")
+            for c in cells
+            if c["cell_type"] == "code" and "".join(c["source"]).strip()
+        ]
         if counts != list(range(1, len(counts) + 1)):
             problems.append(
                 f"notebooks/{paired.name} is not stored executed in order (execution counts {counts}); "

@@ -27,6 +27,7 @@ def _release_compiled_programs():
     gc.collect()
 
 
+@pytest.hookimpl(optionalhook=True)  # runs with -p no:xdist too
 def pytest_xdist_auto_num_workers(config):
     """``-n auto`` (pyproject's addopts): one worker per available core, at most 4 (a worker peaks near 4 GB)."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
