@@ -2,21 +2,23 @@
 
 1. Work–precision over γ ∈ {1, 10², 10⁴, 10⁶}: the error of stationary statistics against the path-steps and seconds
    spent, for Euler and weak2 (at their largest stable step and at ``λ dt ≈ 0.1``, ``λ = γ(1/m + a²/I)`` the contact
-   rate, where the step count stays below ``--max-steps``) and for exponential Euler at one fixed step, as
-   shipped (``solver="exponential"``: noise ``φ₁(Ah) b ΔW``) and with the exact Ornstein–Uhlenbeck covariance of the
-   linear part (``ExponentialOU`` below, a prototype).
+   rate, where the step count stays below ``--max-steps``) and for ``solver="exponential"`` at one fixed step (its
+   noise has the exact covariance of the linear flow).
 2. γ → ∞ at fixed ``kT``: ``⟨v⟩``, ``m⟨v²⟩/kT``, ``I⟨ω²⟩/kT``, ``J⟨ω²⟩/kT`` and the non-contact mode
    ``J⟨ω_s²⟩/kT`` (``ω_s = ω + (ma/J) w = L_P/J``, the angular momentum about the knife) of the soft model against
    the naive model's.
+3. Stiffness (``--part stiffness``): the steps and seconds ``solver="exponential"`` needs for every Gibbs statistic
+   of part 1 within ``--tol`` (and 4 SE) of Gibbs, at γ = 1 and 10⁶ (the largest of ``dt = 0.25/2^k`` that meets
+   it), their ratio, and Euler's and Heun's refusal at γ = 10⁶.
 
 Paths start from the Gibbs law ``N(0, kT M⁻¹)`` of the velocities ``(v, w, ω)`` (``M`` the body-frame mass matrix),
 so every time is stationary for the exact process; statistics are the per-path averages over the saved times
 ``t = 1, 2`` (standard errors across paths).  ``ε = kT = 0.5``, ``m = I = a = 1``.
 
-    python benchmarks/finite_temperature.py [--paths 4096] [--max-steps 30000] [--part …] [--x64]
+    python benchmarks/finite_temperature.py [--paths 4096] [--max-steps 30000] [--part …] [--tol 0.02] [--x64]
 
-In float32 the slow rows of ``e^{Ah}`` lose the cancellation ``aγ/I − (ma/J)·γJ/(mI) = 0`` at ``γ = 10⁶``
-(``J⟨ω_s²⟩/kT`` 1.33 with the exact-noise step); ``--x64`` runs in float64.
+``--x64`` runs in float64; without it states are float32, and so are the exponential solver's matrices of the
+linear flow, which lose the slow modes' part of ``b bᵀ`` at large ``γ`` (``ExponentialEuler``).
 """
 
 from __future__ import annotations
@@ -24,60 +26,17 @@ from __future__ import annotations
 import argparse
 import time
 
-import diffrax as dfx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 import nhsde
-from nhsde._solvers import ExponentialEuler
 from nhsde.scenes import ChaplyginSleighInBath
 
 EPS, KT, MASS, INERTIA, OFFSET = 0.5, 0.5, 1.0, 1.0, 1.0
 J = INERTIA + MASS * OFFSET**2
 T1 = 2.0
 GAMMAS = (1.0, 1e2, 1e4, 1e6)
-DOUBLINGS = 40
-
-
-class ExponentialOU(ExponentialEuler):
-    """Exponential Euler with the exact noise of the linear flow (additive noise):
-
-        Z_{n+1} = e^{Ah} Z_n + h φ₁(Ah) N(Z_n) + ξ_n,   ξ_n ~ N(0, Σ_h),   Σ_h = ∫₀ʰ e^{As} b bᵀ e^{Aᵀs} ds,
-
-    ``ξ_n = C ΔW_n``, ``C Cᵀ = Σ_h/h`` (the leading ``m`` eigenpairs; exact where ``rank Σ_h ≤ m``).  ``Σ_h`` by
-    doubling from ``h/2⁴⁰``, ``Σ_{2s} = Σ_s + e^{As} Σ_s e^{Aᵀs}``: contractions only, no overflow at ``λh ≫ 1``
-    (Van Loan's block exponential holds ``e^{−Ah}``, which overflows there).
-    The shipped step's noise ``φ₁(Ah) b ΔW`` has variance ``≈ σ²/(λ²h)`` in a mode of rate ``λh ≫ 1``, not
-    ``σ²/(2λ)``.
-    """
-
-    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        del solver_state, made_jump
-        drift, diffusion = terms.terms
-        h = t1 - t0
-        a = self.linear(args).astype(y0.dtype)
-        d = y0.shape[0]
-        block = jnp.block([[a * h, h * jnp.eye(d, dtype=y0.dtype)], [jnp.zeros((d, 2 * d), y0.dtype)]])
-        e = jax.scipy.linalg.expm(block)
-        propagator, h_phi = e[:d, :d], e[:d, d:]
-        b = diffusion.vf(t0, y0, args)
-        dw = diffusion.contr(t0, t1)
-        s = h / 2.0**DOUBLINGS
-        q = b @ b.T
-        cov = s * q + 0.5 * s**2 * (a @ q + q @ a.T)
-
-        def double(k, cov):  # e^{As} afresh at each level: I + As rounds to I in float32 at small s
-            p = jax.scipy.linalg.expm(a * (s * 2.0**k))
-            return cov + p @ cov @ p.T
-
-        cov = jax.lax.fori_loop(0, DOUBLINGS, double, cov)
-        vals, vecs = jnp.linalg.eigh(0.5 * (cov + cov.T) / h)
-        m = b.shape[1]
-        c = vecs[:, -m:] * jnp.sqrt(jnp.clip(vals[-m:], 0.0))
-        nonlinear = drift.vf(t0, y0, args) - a @ y0
-        y1 = propagator @ y0 + h_phi @ nonlinear + c @ dw
-        return y1, None, dict(y0=y0, y1=y1), None, dfx.RESULTS.successful
 
 
 def gibbs_start(key, n):
@@ -103,8 +62,6 @@ def run(model, gamma, solver, dt, n_paths, key, t1=T1):
         model=model, drift=False, eps=EPS, kT=KT, gamma=gamma, mass=MASS, inertia=INERTIA, offset=OFFSET
     )
     system = scene.build()
-    if solver == "exponential-ou":
-        solver = ExponentialOU(system.linear_drift)
     start = (gibbs_start if model == "soft" else naive_start)(jax.random.fold_in(key, 1), n_paths)
     kw = dict(n_paths=n_paths, t1=t1, dt=dt, solver=solver, save=nhsde.Save(n=3, paths=True))
     nhsde.simulate(system, start, key, **kw).paths.block_until_ready()  # compile
@@ -144,7 +101,7 @@ def work_precision(n_paths, max_steps, key):
     print("|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     for gamma in GAMMAS:
         lam = rate(gamma)
-        rows = [("exponential", 0.01), ("exponential-ou", 0.01)]
+        rows = [("exponential", 0.01)]
         for solver in ("euler", "weak2"):
             dt = 0.01
             while True:  # the largest stable step 0.01/2^k: simulate refuses the others before the run
@@ -186,7 +143,7 @@ def large_gamma(n_paths, key):
     print("| model | ⟨v⟩ | m⟨v²⟩/kT | I⟨ω²⟩/kT | J⟨ω²⟩/kT | J⟨ω_s²⟩/kT |")
     print("|---|---:|---:|---:|---:|---:|")
     for gamma in (1.0, 10.0, 1e2, 1e3, 1e4, 1e6):
-        out, _ = run("soft", gamma, "exponential-ou", 0.01, n_paths, key, t1=20.0)
+        out, _ = run("soft", gamma, "exponential", 0.01, n_paths, key, t1=20.0)
         names = ("<v>", "m<v²>/kT", "I<ω²>/kT", "J<ω²>/kT", "J<ω_s²>/kT")
         print(f"| soft, γ = {gamma:g} | " + " | ".join(fmt(out[n]) for n in names) + " |", flush=True)
     out, _ = run("naive", 0.0, "weak2", 0.01, n_paths, key, t1=20.0)
@@ -194,11 +151,39 @@ def large_gamma(n_paths, key):
     print("| naive | " + " | ".join(fmt(out[n]) for n in names) + " | (= J⟨ω²⟩/kT) |", flush=True)
 
 
+def stiffness(n_paths, key, tol):
+    print("| γ | λ dt at the accepted dt | dt | steps/path | s (warm) | largest |stat − Gibbs| | SE |")
+    print("|---:|---:|---:|---:|---:|---:|---:|")
+    cost = {}
+    for gamma in (1.0, 1e6):
+        dt = 0.25
+        while dt >= 0.25 / 2**6:
+            out, seconds = run("soft", gamma, "exponential", dt, n_paths, key, t1=2.0)
+            gibbs = {name: (0.0 if name == "<v>" else 1.0) for name in out if name != "J<ω²>/kT"}
+            worst = max(abs(out[name][0] - value) for name, value in gibbs.items())
+            se = max(out[name][1] for name in gibbs)
+            if worst <= max(tol, 4 * se):
+                break
+            dt /= 2
+        steps = int(round(2.0 / dt))
+        cost[gamma] = (steps, seconds)
+        print(f"| {gamma:g} | {rate(gamma) * dt:.3g} | {dt:g} | {steps} | {seconds:.2f} | {worst:.4f} | {se:.4f} |")
+    print(f"cost ratio γ = 10⁶ : γ = 1: steps {cost[1e6][0] / cost[1.0][0]:.2f}, s {cost[1e6][1] / cost[1.0][1]:.2f}")
+    scene = ChaplyginSleighInBath(model="soft", drift=False, gamma=1e6, eps=EPS, kT=KT)
+    for solver in ("euler", "heun"):
+        try:
+            nhsde.simulate(scene.build(), jnp.zeros(3), key, n_paths=64, t1=2.0, dt=0.01, solver=solver)
+            print(f"{solver}: ran (not refused)")
+        except ValueError as e:
+            print(f"{solver}: refused: {str(e).splitlines()[0][:160]}")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--paths", type=int, default=4096)
     parser.add_argument("--max-steps", type=int, default=30000)
-    parser.add_argument("--part", choices=("all", "work-precision", "large-gamma"), default="all")
+    parser.add_argument("--part", choices=("all", "work-precision", "large-gamma", "stiffness"), default="all")
+    parser.add_argument("--tol", type=float, default=0.02, help="accuracy of the Gibbs statistics (stiffness)")
     parser.add_argument("--x64", action="store_true", help="float64 states (float32 loses γ ≳ 10⁵: docstring)")
     args = parser.parse_args()
     if args.x64:
@@ -208,6 +193,8 @@ def main():
         work_precision(args.paths, args.max_steps, key)
     if args.part in ("all", "large-gamma"):
         large_gamma(args.paths, key)
+    if args.part in ("all", "stiffness"):
+        stiffness(args.paths, key, args.tol)
 
 
 if __name__ == "__main__":

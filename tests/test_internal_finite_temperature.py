@@ -1,7 +1,6 @@
-"""Internals of the finite-temperature models: the stability limit on the contact viscosity, the PSD factor, and an
-exponential step with the exact noise of the linear flow (a proposal for ``ExponentialEuler``)."""
+"""Internals of the finite-temperature models: the stability limit on the contact viscosity, the PSD factor, and the
+exponential step's exact noise of the linear flow (``ExponentialEuler``)."""
 
-import diffrax as dfx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -9,7 +8,7 @@ import pytest
 
 import nhsde
 from nhsde._simulate import stable_step
-from nhsde._solvers import ExponentialEuler
+from nhsde._solvers import _flow
 from nhsde.mechanics._small import psd_factor
 from nhsde.scenes import ChaplyginSleighInBath
 
@@ -38,50 +37,16 @@ def test_psd_factor_of_singular_friction():
     assert np.allclose(jax.jacfwd(lambda x: psd_factor(jnp.diag(jnp.stack([x, x]))))(jnp.asarray(4.0)).sum(), 0.5)
 
 
-class ExponentialOU(ExponentialEuler):
-    """Exponential Euler with the exact noise of the linear flow (additive noise ``b``):
-
-        Z_{n+1} = e^{Ah} Z_n + h φ₁(Ah) N(Z_n) + C ΔW_n,   C Cᵀ h = Σ_h = ∫₀ʰ e^{As} b bᵀ e^{Aᵀs} ds,
-
-    ``C`` from the leading ``m`` eigenpairs of ``Σ_h/h`` (exact where ``rank Σ_h ≤ m``); ``Σ_h`` by doubling from
-    ``h/2⁴⁰``, ``Σ_{2s} = Σ_s + e^{As} Σ_s e^{Aᵀs}`` (contractions only: Van Loan's block exponential holds
-    ``e^{−Ah}``, which overflows at ``λh ≫ 1``).  Same as ``benchmarks/finite_temperature.py``.
-    """
-
-    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        drift, diffusion = terms.terms
-        h, d = t1 - t0, y0.shape[0]
-        a = self.linear(args).astype(y0.dtype)
-        e = jax.scipy.linalg.expm(
-            jnp.block([[a * h, h * jnp.eye(d, dtype=y0.dtype)], [jnp.zeros((d, 2 * d), y0.dtype)]])
-        )
-        b = diffusion.vf(t0, y0, args)
-        s, q = h / 2.0**40, b @ b.T
-        cov = s * q + 0.5 * s**2 * (a @ q + q @ a.T)
-
-        def double(k, cov):  # e^{As} afresh at each level: I + As rounds to I in float32 at small s
-            p = jax.scipy.linalg.expm(a * (s * 2.0**k))
-            return cov + p @ cov @ p.T
-
-        cov = jax.lax.fori_loop(0, 40, double, cov)
-        vals, vecs = jnp.linalg.eigh(0.5 * (cov + cov.T) / h)
-        c = vecs[:, -b.shape[1] :] * jnp.sqrt(jnp.clip(vals[-b.shape[1] :], 0.0))
-        y1 = e[:d, :d] @ y0 + e[:d, d:] @ (drift.vf(t0, y0, args) - a @ y0) + c @ diffusion.contr(t0, t1)
-        return y1, None, dict(y0=y0, y1=y1), None, dfx.RESULTS.successful
-
-
 @pytest.mark.parametrize("offset", [0.0, 1.0])
 def test_exact_noise_exponential_step_keeps_gibbs_whatever_the_contact(offset):
-    """With the exact covariance of the linear flow, one step ``dt = 0.01`` keeps Gibbs for ``γ`` from 1 to 10⁴
-    (``λ dt`` from 0.02 to 200), for the sleigh (``a = 1``) and the knife edge (``a = 0``): the three independent
-    modes of ``T``, ``m⟨v²⟩ = m⟨(w + aω)²⟩ = I⟨ω²⟩ = kT``, the modes the contact does not touch and the contact's,
-    ``J⟨ω_s²⟩ = (mI/J)⟨w²⟩ = kT`` (``ω_s = ω + (ma/J) w``, the angular momentum about the knife over ``J``), and
-    ``⟨v⟩ = 0``, where the shipped step's cold contact drifts forward (``test_finite_temperature``).
+    """``solver="exponential"`` draws the exact covariance of the linear flow: one step ``dt = 0.01`` keeps Gibbs
+    for ``γ`` from 1 to 10⁶ (``λ dt`` from 0.02 to 2·10⁴), for the sleigh (``a = 1``) and the knife edge (``a = 0``):
+    the three independent modes of ``T``, ``m⟨v²⟩ = m⟨(w + aω)²⟩ = I⟨ω²⟩ = kT``, the modes the contact does not
+    touch and the contact's, ``J⟨ω_s²⟩ = (mI/J)⟨w²⟩ = kT`` (``ω_s = ω + (ma/J) w``, the angular momentum about the
+    knife over ``J``), and ``⟨v⟩ = 0``.
 
-    From Gibbs, ``N(0, kT M⁻¹)``, averages over ``t = 1, 2`` per path, 4096 paths, one program for every ``γ`` and
-    ``a``.  (At ``γ = 10⁶`` in float32 the slow rows of ``e^{Ah}`` lose the cancellation
-    ``aγ/I − (ma/J)·γJ/(mI) = 0``, relative error ``~ 10⁻⁷ λh``: ``J⟨ω_s²⟩/kT`` came out 1.33; in float64
-    1.010 ± 0.016, ``benchmarks/finite_temperature.py``.)
+    From Gibbs, ``N(0, kT M⁻¹)``, averages over ``t = 1, 2`` per path, 4096 paths, float32 states (the matrices of
+    the linear flow in float64), one program for every ``γ`` and ``a``.
     """
     eps, kt, m, i, a = 0.5, 0.5, 1.0, 1.0, offset
     j, n = i + m * a**2, 4096
@@ -89,17 +54,10 @@ def test_exact_noise_exponential_step_keeps_gibbs_whatever_the_contact(offset):
     key = jax.random.key(39)
     z = np.asarray(jax.random.normal(jax.random.fold_in(key, 1), (n, 3)), np.float64)
     y0 = jnp.asarray(z @ np.linalg.cholesky(kt * np.linalg.inv(mass)).T, jnp.float32)
-    for gamma in (1.0, 10.0, 1e2, 1e3, 1e4):
+    for gamma in (1.0, 10.0, 1e2, 1e3, 1e4, 1e6):
         system = ChaplyginSleighInBath(model="soft", drift=False, eps=eps, kT=kt, gamma=gamma, offset=a).build()
         ens = nhsde.simulate(
-            system,
-            y0,
-            key,
-            n_paths=n,
-            t1=2.0,
-            dt=0.01,
-            solver=ExponentialOU(system.linear_drift),
-            save=nhsde.Save(n=3, paths=True),
+            system, y0, key, n_paths=n, t1=2.0, dt=0.01, solver="exponential", save=nhsde.Save(n=3, paths=True)
         )
         y = np.asarray(ens.paths, np.float64)[:, 1:, :]
         v, w, omega = y[..., 0], y[..., 1], y[..., 2]
@@ -114,3 +72,63 @@ def test_exact_noise_exponential_step_keeps_gibbs_whatever_the_contact(offset):
             per_path = x.mean(axis=1)
             mean, se = float(per_path.mean()), float(per_path.std(ddof=1) / np.sqrt(n))
             assert abs(mean - expected) <= 4 * se, (offset, gamma, label, mean, se)
+
+
+def _ou_covariance(a, q, h, levels=40):
+    """``Σ_h = ∫₀ʰ e^{As} Q e^{Aᵀs} ds`` by doubling from ``h/2⁴⁰`` (NumPy, float64): the reference."""
+    import scipy.linalg
+
+    s = h / 2.0**levels
+    cov = s * q + 0.5 * s**2 * (a @ q + q @ a.T)
+    for k in range(levels):
+        p = scipy.linalg.expm(a * (s * 2.0**k))
+        cov = cov + p @ cov @ p.T
+    return cov
+
+
+def _soft_flow(gamma, kt, h=0.01, eps=0.5):
+    system = ChaplyginSleighInBath(model="soft", drift=False, eps=eps, kT=kt, gamma=gamma).build()
+    p = system.params
+    b = system.diffusion(0.0, jnp.zeros(3), p)
+    return _flow(system.linear_drift(p), jnp.asarray(h), b, jnp.float64), system, b
+
+
+@pytest.mark.parametrize("gamma", [1.0, 1e3, 1e6])
+def test_noise_factor_is_the_exact_covariance_of_the_linear_flow(gamma):
+    """``C Cᵀ h = Σ_h`` (against doubling), ``C = φ₁(Ah) b + O(h²)`` (strong order), at ``λh`` from 0.02 to
+    2·10⁴; ``e^{Ah}`` and ``hφ₁(Ah)`` as before."""
+    import scipy.linalg
+
+    h = 0.01
+    flow, system, b = _soft_flow(gamma, 0.5, h)
+    a, b = np.asarray(system.linear_drift(system.params)), np.asarray(b)
+    c = np.asarray(flow.noise)
+    sigma = _ou_covariance(a, b @ b.T, h)
+    np.testing.assert_allclose(c @ c.T * h, sigma, rtol=1e-9, atol=1e-12 * np.abs(sigma).max())
+    np.testing.assert_allclose(np.asarray(flow.propagator), scipy.linalg.expm(a * h), rtol=1e-9, atol=1e-14)
+    if gamma == 1.0:  # C − φ₁(Ah) b = O(h²)
+        p = np.asarray(flow.h_phi) @ b / h
+        assert np.max(np.abs(c - p)) <= 10 * h**2 * np.max(np.abs(b)), np.max(np.abs(c - p))
+
+
+def test_noise_factor_derivatives_match_finite_differences():
+    """Forward and reverse mode of ``C`` in ``γ`` and ``kT`` (stiff ``λh = 200`` and mild ``0.2``) equal central
+    differences, and ``C`` is ``√kT`` times a factor independent of ``kT``; at ``kT = 0`` it is 0."""
+
+    @jax.jit
+    def factor(theta):
+        return _soft_flow(theta[0], theta[1])[0].noise
+
+    for gamma in (10.0, 1e4):
+        theta = jnp.array([gamma, 0.5])
+        fwd, rev = jax.jit(jax.jacfwd(factor))(theta), jax.jit(jax.jacrev(factor))(theta)
+        np.testing.assert_allclose(np.asarray(fwd), np.asarray(rev), rtol=1e-10, atol=1e-14)
+        for k in range(2):
+            step = 1e-6 * float(theta[k])
+            e = jnp.zeros(2).at[k].set(step)
+            fd = (factor(theta + e) - factor(theta - e)) / (2 * step)
+            np.testing.assert_allclose(np.asarray(fwd[..., k]), np.asarray(fd), rtol=1e-5, atol=1e-8)
+        np.testing.assert_allclose(
+            np.asarray(fwd[..., 1]), np.asarray(factor(theta)) / (2 * 0.5), rtol=1e-9, atol=1e-14
+        )
+    assert np.all(np.asarray(_soft_flow(1e4, 0.0)[0].noise) == 0.0)

@@ -121,7 +121,28 @@ def check_result(outputs, result: SimulationResult, caller: str, details: str = 
         if message:
             raise SimulationError(f"{caller}: {details}{message}")
         return outputs
+    return _error_if_in_derivatives(outputs, result)
+
+
+@jax.custom_jvp
+def _error_if_in_derivatives(outputs, result: SimulationResult):
+    """``outputs`` checked against ``result`` (``eqx.error_if``), in their derivatives too."""
     return result.error_if(outputs, result != SimulationResult.successful)
+
+
+@_error_if_in_derivatives.defjvp
+def _error_if_in_derivatives_jvp(primals, tangents):
+    # the tangents read the checked outputs (times one): `jit(jacfwd(f))` or `jit(grad(f))` returning derivatives
+    # alone keeps the check, which XLA removes where it rides on the primal outputs only
+    outputs, result = primals
+    checked = _error_if_in_derivatives(outputs, result)
+
+    def carry(tangent, value):
+        if tangent.dtype == jax.dtypes.float0:
+            return tangent
+        return tangent * (1 + 0 * value).astype(tangent.dtype)
+
+    return checked, jax.tree.map(carry, tangents[0], checked)
 
 
 def _tuple_of_names(names):

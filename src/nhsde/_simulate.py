@@ -172,7 +172,7 @@ def _fixed_chunk(
         # longer stepped from that state (where the step overflows) but from its constant start, so
         # its zero cotangents meet finite Jacobians: reverse-mode gradients equal forward mode's.
         y_in = jnp.where(alive, y, jax.lax.stop_gradient(y_start))
-        y1, _, _, _, result = solver.step(terms(increment, t), 0.0 * dt, dt, y_in, params, None, False)
+        y1, _, _, _, result = solver.step(terms(increment, t), 0.0 * dt, dt, y_in, params, solver_state, False)
         good = (result == dfx.RESULTS.successful) & jnp.all(jnp.isfinite(y1))
         return jnp.where(good & alive, y1, y), good
 
@@ -213,11 +213,13 @@ def _fixed_chunk(
         return (y, ok, meter_state), observe(t, y, params)
 
     y = y_start = y0.reshape(nb, BLOCK, -1)
-    # The solvers used here keep no state between steps; init only runs diffrax's checks.
+    # The solvers used here keep no state between steps: init runs diffrax's checks and computes what depends on the
+    # parameters and the step only (ExponentialEuler's matrices of the linear flow), once per solve.
     first = system.noise.block_increment(
         keys[0], blocks[0], jnp.int32(0), base_dt, (system.noise_dim,), grid.substeps, needs.levy_area
     )
-    solver.init(terms(jax.tree_util.tree_map(lambda a: a[0], first), t0), 0.0 * dt, dt, y[0, 0], params)
+    state = solver.init(terms(jax.tree_util.tree_map(lambda a: a[0], first), t0), 0.0 * dt, dt, y[0, 0], params)
+    solver_state = state if isinstance(solver, ExponentialEuler) else None  # others: per-lane state, or none
     ok = jnp.all(jnp.isfinite(y), axis=-1)
     first_obs = observe(t0, y, params)
     interval = jax.checkpoint(interval) if plan.checkpoint else interval

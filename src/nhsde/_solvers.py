@@ -10,20 +10,18 @@ additive noise needs additive noise (and then both calculi agree), and
 of :data:`SOLVERS` are aliases for the CLI and run files.
 
 :class:`ExponentialEuler` treats the stiff linear part ``A`` of the drift
-``a(Z) = A Z + N(Z)`` (viscous friction) exactly:
+``a(Z) = A Z + N(Z)`` (viscous friction, a soft contact) exactly, its noise included:
 
-    Z_{n+1} = e^{Ah} Z_n + h φ₁(Ah) N(Z_n) + φ₁(Ah) b(Z_n) ΔW_n,   φ₁(x) = (e^x − 1)/x,
+    Z_{n+1} = e^{Ah} Z_n + h φ₁(Ah) N(Z_n) + C ΔW_n,   C Cᵀ h = Σ_h = ∫₀ʰ e^{As} b bᵀ e^{Aᵀs} ds,   φ₁(x) = (e^x − 1)/x,
 
-so a dissipative ``A`` stays stable for any ``ε·h`` (Euler–Maruyama needs
-``2ε h < 2`` per friction channel).  It is exact for the deterministic linear
-flow, keeps the fixed point ``−A⁻¹N`` of a constant forcing, has strong order 1
-for additive noise (0.5 in general), and reduces to Euler–Maruyama as ``A → 0``.  Stable is not exact: for
-``u̇ = −2εu + σV`` its stationary variance is
-``σ²(1 − e^{−2εh})/(4ε²h(1 + e^{−2εh}))``, which is ``σ²/(4ε)·(1 + O(ε²h²))``
-for small ``εh`` and ``≈ σ²/(4ε²h)`` (too small) once ``εh ≫ 1``.
-``e^{Ah}`` and ``hφ₁(Ah)`` come from one matrix exponential of
-``[[A h, h I], [0, 0]]``; they depend on the parameters only, so under ``vmap``
-over paths they are computed once per step.
+so a dissipative ``A`` stays stable for any ``λh`` (Euler–Maruyama needs ``λh < 2``), and a mode of any rate keeps
+its stationary variance (``u̇ = −2εu + σV``: ``σ²/(4ε)`` at every ``εh``; Euler–Maruyama's noise ``φ₁(Ah) b ΔW``
+gave ``σ²/(4ε)·tanh(εh)/(εh)``, a cold stiff contact).  ``C = φ₁(Ah) b + O(h²)``: strong order 1 for additive
+noise (0.5 in general), Euler–Maruyama as ``A → 0``.  Exact in law for the linear flow wherever it keeps the noise
+in the span of ``φ₁(Ah) b`` (``A`` acting on the noisy velocities: friction and contact damping); where ``A`` also
+moves noiseless coordinates (the ball's ``ẋ = u``) ``C Cᵀ h`` is ``Σ_h`` projected on that span, an ``O(h³)``
+error per step at small ``h``.  ``e^{Ah}``, ``hφ₁(Ah)`` and the map ``Q ↦ Σ_h`` depend on the parameters and the
+step only: ``init`` computes them once per solve (in float64 where enabled), and ``C`` too for additive noise.
 
 Every solver :func:`solver_needs` returns differentiates in forward and reverse mode alike (``jax.jacfwd``,
 ``jax.grad``, the estimators' ``wrt``): diffrax's explicit Runge–Kutta stages run as a scan of the stage count
@@ -47,23 +45,88 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax import Array
 from jax.scipy.linalg import expm
 
 from ._system import StochasticSystem
 from ._weak import WEAK_INCREMENTS, PlatenWeak2
+from .mechanics._small import psd_factor
 
 __all__ = ["SOLVERS", "ExponentialEuler", "SolverNeeds", "solver_needs"]
 
 
-class ExponentialEuler(dfx.AbstractItoSolver):
-    """Exponential Euler–Maruyama for ``dZ = (A Z + N(Z)) dt + b(Z) dW`` (Itô).
+class _LinearFlow(eqx.Module):
+    """What :class:`ExponentialEuler` needs of the linear flow ``e^{As}`` over one step ``h``, once per solve.
 
-    ``linear(params) -> A`` gives the linear part of the drift; the drift term's
-    vector field is the full drift ``A Z + N(Z)``.  Left ``None``, ``simulate``
-    takes the system's declared ``linear_drift``.
+    ``propagator = e^{Ah}``, ``h_phi = h φ₁(Ah)`` (one ``expm`` of ``[[A h, h I], [0, 0]]``), ``gram`` the linear map
+    ``vec Q ↦ vec Σ_h = ∫₀ʰ (e^{As} ⊗ e^{As}) ds vec Q`` (the top right block of one ``expm`` of
+    ``[[(A ⊕ A) h, h I], [0, 0]]``, ``A ⊕ A = A ⊗ I + I ⊗ A``: only the decaying ``e^{As}``, no ``e^{−Ah}``), and the
+    noise factor ``noise`` when the noise is additive (else ``None``, computed per step).  Computed in float64 where
+    JAX has it: in float32 ``b bᵀ`` of a stiff contact (``√γ`` in ``b``) loses the slow modes' part of ``Q``.
+    """
+
+    h: Array
+    propagator: Array
+    h_phi: Array
+    gram: Array
+    noise: Array | None
+
+
+def _wide(dtype):
+    """The precision of the once-per-solve matrices: float64 where enabled, else the state's."""
+    return jnp.float64 if jax.config.read("jax_enable_x64") else dtype
+
+
+def _flow(a: Array, h: Array, b: Array | None, dtype) -> _LinearFlow:
+    wide = _wide(dtype)
+    a, hw = a.astype(wide), jnp.asarray(h).astype(wide)
+    d = a.shape[0]
+    e = expm(jnp.block([[a * hw, hw * jnp.eye(d, dtype=wide)], [jnp.zeros((d, 2 * d), wide)]]), max_squarings=64)
+    eye = jnp.eye(d, dtype=wide)
+    ksum = jnp.kron(a, eye) + jnp.kron(eye, a)  # row-major vec: (A ⊕ A) vec X = vec(A X + X Aᵀ)
+    dd = d * d
+    big = expm(
+        jnp.block([[ksum * hw, hw * jnp.eye(dd, dtype=wide)], [jnp.zeros((dd, 2 * dd), wide)]]), max_squarings=64
+    )  # JAX's default 16 squarings give nan past ‖Ah‖ ≈ 3·10⁵
+    flow = _LinearFlow(hw, e[:d, :d], e[:d, d:], big[:dd, dd:], None)
+    if b is not None:
+        flow = dataclasses.replace(flow, noise=_noise_factor(flow, b))
+    return flow
+
+
+def _noise_factor(flow: _LinearFlow, b: Array) -> Array:
+    """``C = P L`` with ``P = φ₁(Ah) b``, ``L Lᵀ = K = P⁺ (Σ_h/h) P⁺ᵀ`` (lower triangular, zero columns where ``K``
+    is singular): ``C Cᵀ h = Σ_h`` wherever ``range Σ_h = range P`` (the linear flow keeps the noise in its span),
+    else the projection of ``Σ_h`` on ``range P``.  ``K = I + O(h²)`` at small ``h``, so ``C = P + O(h²)``: the
+    step keeps exponential Euler's strong order.  ``K`` does not depend on the scale of ``b``."""
+    wide = flow.gram.dtype
+    b = b.astype(wide)
+    d, m = b.shape
+    sigma = (flow.gram @ (b @ b.T).reshape(-1)).reshape(d, d) / flow.h
+    p = flow.h_phi @ b / flow.h
+    g = p.T @ p
+    diag = jnp.diagonal(g)
+    dead = diag <= 16 * m * jnp.finfo(wide).eps * jnp.max(diag)
+    g = g + jnp.diag(jnp.where(dead, 1.0, 0.0).astype(wide))  # a column without noise: a zero row of P⁺
+    left = jnp.linalg.solve(g, p.T)  # P⁺ = (PᵀP)⁻¹ Pᵀ
+    k = left @ (0.5 * (sigma + sigma.T)) @ left.T
+    return p @ psd_factor(0.5 * (k + k.T))
+
+
+class ExponentialEuler(dfx.AbstractItoSolver):
+    """Exponential Euler–Maruyama with the exact noise of the linear flow, for ``dZ = (A Z + N(Z)) dt + b(Z) dW``
+    (Itô):
+
+        Z_{n+1} = e^{Ah} Z_n + h φ₁(Ah) N(Z_n) + C ΔW_n,   C Cᵀ h = Σ_h = ∫₀ʰ e^{As} b bᵀ e^{Aᵀs} ds,
+
+    ``b = b(Z_n)``, ``φ₁(x) = (eˣ − 1)/x``, ``C = φ₁(Ah) b + O(h²)`` (THEORY.md §8: a mode of any rate ``λh`` keeps
+    its stationary variance).  ``linear(params) -> A`` gives the linear part of the drift; the drift term's vector
+    field is the full drift ``A Z + N(Z)``.  Left ``None``, ``simulate`` takes the system's declared
+    ``linear_drift``.  ``additive``: ``b`` does not depend on the state, so ``C`` is computed once per solve.
     """
 
     linear: Callable | None = None
+    additive: bool = eqx.field(default=False, static=True)
     term_structure: ClassVar = dfx.MultiTerm[tuple[dfx.AbstractTerm, dfx.AbstractTerm]]
     interpolation_cls: ClassVar = dfx.LocalLinearInterpolation
 
@@ -73,24 +136,37 @@ class ExponentialEuler(dfx.AbstractItoSolver):
     def strong_order(self, terms):
         return 0.5
 
-    def init(self, terms, t0, t1, y0, args):
-        return None
-
-    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        del solver_state, made_jump
-        drift, diffusion = terms.terms
-        h = t1 - t0
+    def _linear(self, args, dtype):
         if self.linear is None:
             raise ValueError("ExponentialEuler needs linear(params) -> A; simulate fills it from the system.")
-        a = self.linear(args).astype(y0.dtype)
-        d = y0.shape[0]
-        block = jnp.block([[a * h, h * jnp.eye(d, dtype=y0.dtype)], [jnp.zeros((d, 2 * d), y0.dtype)]])
-        e = expm(block)
-        propagator, h_phi = e[:d, :d], e[:d, d:]
+        return self.linear(args).astype(dtype)
+
+    def _flow(self, terms, t0, h, y0, args) -> _LinearFlow:
+        b = terms.terms[1].vf(t0, y0, args) if self.additive else None
+        return _flow(self._linear(args, y0.dtype), h, b, y0.dtype)
+
+    def init(self, terms, t0, t1, y0, args):
+        """The matrices of the linear flow over the step ``t1 − t0`` (:class:`_LinearFlow`), once per solve."""
+        return self._flow(terms, t0, t1 - t0, y0, args)
+
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        del made_jump
+        drift, diffusion = terms.terms
+        h = t1 - t0
+        a = self._linear(args, y0.dtype)
+        if solver_state is None:
+            flow = self._flow(terms, t0, h, y0, args)
+        else:  # a step of another length (adaptive steps, a last short step): the matrices afresh
+            flow = jax.lax.cond(
+                jnp.asarray(h).astype(solver_state.h.dtype) == solver_state.h,
+                lambda: solver_state,
+                lambda: self._flow(terms, t0, h, y0, args),
+            )
+        noise = flow.noise if flow.noise is not None else _noise_factor(flow, diffusion.vf(t0, y0, args))
+        propagator, h_phi, noise = (x.astype(y0.dtype) for x in (flow.propagator, flow.h_phi, noise))
         nonlinear = drift.vf(t0, y0, args) - a @ y0
-        noise = diffusion.vf_prod(t0, y0, args, diffusion.contr(t0, t1))
-        y1 = propagator @ y0 + h_phi @ (nonlinear + noise / h)
-        return y1, None, dict(y0=y0, y1=y1), None, dfx.RESULTS.successful
+        y1 = propagator @ y0 + h_phi @ nonlinear + diffusion.prod(noise, diffusion.contr(t0, t1))
+        return y1, None, dict(y0=y0, y1=y1), solver_state, dfx.RESULTS.successful
 
     def func(self, terms, t0, y0, args):
         return terms.vf(t0, y0, args)
@@ -299,7 +375,7 @@ def solver_needs(solver: str | dfx.AbstractSolver, system: StochasticSystem) -> 
                 f"solver={name!r} needs the system's linear drift part (StochasticSystem.linear_drift); "
                 "this system does not declare one."
             )
-        solver = ExponentialEuler(system.linear_drift)
+        solver = ExponentialEuler(system.linear_drift, additive=system.additive_noise)
     embedded = isinstance(solver, dfx.AbstractSRK) and solver.tableau.b_error is not None
     solver = _finite_tangents(_both_modes(solver))
     return SolverNeeds(solver, name, interpretation, additive_only, _levy_area(solver), embedded)

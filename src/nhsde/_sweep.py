@@ -25,7 +25,7 @@ import numpy as np
 import xarray as xr
 
 from ._ensemble import SimulationError
-from ._misc import check_key
+from ._misc import check_key, is_concrete
 from ._simulate import MIN_PATHS, simulate
 from ._system import StochasticSystem
 from .scenes import AbstractScene
@@ -146,6 +146,13 @@ def sweep(
         raise ValueError(f"on_failure={on_failure!r}; allowed: 'raise', 'exclude'.")
     if not isinstance(grid, Mapping) or not grid:
         raise TypeError(f"grid={grid!r}; expected a dict of parameter names and their values, e.g. {{'eps': [1, 2]}}.")
+    for name, value in (("grid", dict(grid)), ("y0", y0), ("the system's parameters", system.params)):
+        if not is_concrete(value):
+            raise TypeError(
+                f"sweep: {name} holds traced values (sweep was called inside jax.jit, jax.grad or jax.vmap). sweep "
+                "runs concrete grid points from the host: call it outside the transform and take derivatives with "
+                "its wrt=, or transform nhsde.simulate itself."
+            )
     names = check_wrt(system, tuple(grid))
     axes = []
     for name in names:

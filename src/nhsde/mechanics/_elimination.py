@@ -14,6 +14,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from .._misc import is_concrete
 from ._spec import MechanicalSpec
 
 __all__ = ["Elimination", "choose_dependent", "make_elimination"]
@@ -74,7 +75,14 @@ def choose_dependent(spec: MechanicalSpec, q, pi=None, t=0.0) -> tuple[str, ...]
     column is a dependent velocity.  This keeps ``a_D`` well conditioned near ``q``.
     """
     q, pi, t = _configuration(spec, q, pi, t)
-    rows = np.array(spec.velocity_constraints(q, pi, t, spec.params)[0], dtype=float)
+    rows = spec.velocity_constraints(q, pi, t, spec.params)[0]
+    if not is_concrete(rows):
+        raise TypeError(
+            "dependent=None chooses the dependent velocities from the constraint rows' values at the reference "
+            "configuration, and they are traced here (the system is built inside jax.jit, jax.grad or jax.vmap): "
+            f"pass dependent= ({rows.shape[0]} of {spec.coordinates}), or build the system outside the transform."
+        )
+    rows = np.array(rows, dtype=float)
     chosen = []
     for _ in range(rows.shape[0]):
         i, j = np.unravel_index(np.argmax(np.abs(rows)), rows.shape)
@@ -114,6 +122,8 @@ def make_elimination(spec: MechanicalSpec, dependent=None, reference=None, pi=No
     if reference is not None:
         q, pi, t = _configuration(spec, reference, pi, t)
         p = spec.params
+        if not is_concrete(q, pi, t, p):  # built inside a transform: checked where its values are known
+            return elim
         for label, rows in (
             ("velocity constraint", spec.velocity_constraints(q, pi, t, p)[0]),
             ("virtual-displacement", spec.displacement_constraints(q, pi, t, p)),

@@ -59,6 +59,10 @@ from ._rotating_rod import BeadOnRotatingRod as BeadOnRotatingRod, RodParameters
 from ._sleigh import ChaplyginSleigh as ChaplyginSleigh, SleighParameters as SleighParameters
 from ._spec_scene import AbstractSpecScene as AbstractSpecScene
 from ._spec_sleigh import ChaplyginSleighFromSpec as ChaplyginSleighFromSpec
+from ._thermal_disk import (
+    BathDiskParameters as BathDiskParameters,
+    VerticalRollingDiskInBath as VerticalRollingDiskInBath,
+)
 from ._thermal_sleigh import (
     BathSleighParameters as BathSleighParameters,
     ChaplyginSleighInBath as ChaplyginSleighInBath,

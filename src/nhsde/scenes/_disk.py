@@ -7,6 +7,10 @@ Coordinates ``(x, y, θ, φ)``: contact point, rolling angle, heading.
 ``R Ω_θ/Ω_φ``, and the multipliers (reactions ``aᵀλ``) are
 ``λ = m Ω_φ R Ω_θ (−sin φ, cos φ)``.  Friction ``R = ε (m (ẋ² + ẏ²) + I θ̇² + J φ̇²)``
 and random torques ``√ν (√(I + mR²) V₁, √J V₂)`` on the rolling and the turning.
+
+Read as a bath of temperature ``kT = ν/(4ε)`` this is the *naive thermal* model (noise on the friction, not on the
+contact's reaction; Jagla, Bloch & Rojo, arXiv 2603.14424).  For this disk it is Gibbs conditioned on no slip, and the
+model with a viscous contact and its own noise is :class:`~nhsde.scenes.VerticalRollingDiskInBath`.
 """
 
 from __future__ import annotations
