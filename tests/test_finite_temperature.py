@@ -217,7 +217,8 @@ def test_derivatives_in_temperature_and_viscosity():
 
     - they equal central finite differences of the same paths (common random numbers), at ``t = 10, 20``;
     - at stationarity ``⟨m v²⟩ = ⟨I ω²⟩ = kT`` whatever ``γ`` (Gibbs), so ``∂⟨m v²⟩/∂kT = ∂⟨I ω²⟩/∂kT = 1``
-      and ``∂⟨m v²⟩/∂γ = 0``, within 4 standard errors of the per-sample derivatives.
+      and ``∂⟨m v²⟩/∂γ = 0``; no forward drift at any ``kT`` or ``γ``, so ``∂⟨v⟩/∂kT = ∂⟨v⟩/∂γ = 0``; within 4
+      standard errors of the per-sample derivatives.
     """
     velocities = _tangent_program()
     n_paths, t1 = 512, 20.0
@@ -236,6 +237,8 @@ def test_derivatives_in_temperature_and_viscosity():
         ("∂<m v²>/∂kT", 2 * MASS * v * dy_kt[:, 0], 1.0),
         ("∂<I ω²>/∂kT", 2 * INERTIA * omega * dy_kt[:, 2], 1.0),
         ("∂<m v²>/∂γ", 2 * MASS * v * dy_gamma[:, 0], 0.0),
+        ("∂<v>/∂kT", dy_kt[:, 0], 0.0),
+        ("∂<v>/∂γ", dy_gamma[:, 0], 0.0),
     ):
         mean, se = _mean_se(x)
         assert np.isfinite(mean) and abs(mean - expected) <= 4 * se, (label, mean, se)
