@@ -45,6 +45,12 @@ EXPECTED_PNGS = {
     "rubber_rolling_hierarchy.py": {"poincare_integrable.png", "poincare_unbalanced_gravity.png"},
     "body_of_revolution_vibrating_plane.py": {"nutation_density_spheroid.png", "nutation_density_routh_sphere.png"},
     "rattleback.py": {"rattleback_growth_rates.png", "rattleback_growth_fit.png", "rattleback_reversal.png"},
+    "finite_temperature.py": {
+        "finite_temperature_drift.png",
+        "finite_temperature_gibbs.png",
+        "finite_temperature_limit.png",
+        "finite_temperature_work_precision.png",
+    },
 }
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"

@@ -31,9 +31,8 @@ does not hold, and ``⟨v⟩ = (a⟨ω²⟩ − F/m)/(2ε) > 0`` for a small ``F
 Positions (``drift=True``): ``ẋ = v cos θ − w sin θ``, ``ẏ = v sin θ + w cos θ``, ``θ̇ = ω``.  The velocity
 damping is linear with constant coefficients in ``(v, w, ω)`` (the body frame), so it is declared as the
 system's ``linear_drift``: explicit solvers past their stability limit on ``γ`` are refused before the run,
-and the exponential solver treats the stiff contact's damping exactly (not yet its noise: at ``λh ≫ 1`` the shipped
-step leaves the contact cold, ``tanh(λh/2)/(λh/2)`` of its Gibbs variance, which is the naive model; docs guide
-"Constraints at finite temperature").
+and the exponential solver treats the stiff contact exactly, its damping and its noise: Gibbs at any ``γ`` and step
+(docs guide "Constraints at finite temperature").
 """
 
 from __future__ import annotations
