@@ -29,3 +29,11 @@ def test_the_unrolled_small_factorisation_is_lapacks_to_rounding():
         g = jax.grad(lambda a: jnp.sum(small.spd_solve(a, b)))(a)
         lapack = jax.grad(lambda a: jnp.sum(jnp.linalg.solve(a, b)))(a)
         np.testing.assert_allclose(jnp.sum(g * d), jnp.sum(lapack * d), rtol=1e-9)  # reverse mode, the same
+
+
+def test_the_unrolled_products_are_matmul_to_rounding():
+    """``small.matmul`` (sums of products, which fuse under vmap; no batched dot per path) is ``@`` to rounding."""
+    rng = np.random.default_rng(1)
+    for shapes in (((3, 4), (4, 2)), ((4,), (4, 2)), ((3, 4), (4,)), ((4,), (4,)), ((0, 3), (3,)), ((2, 1), (1, 3))):
+        a, b = (jnp.asarray(rng.standard_normal(s)) for s in shapes)
+        np.testing.assert_allclose(small.matmul(a, b), a @ b, rtol=1e-13, atol=1e-14)

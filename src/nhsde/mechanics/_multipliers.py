@@ -35,8 +35,10 @@ def lagrange_terms(spec: MechanicalSpec, q, v, pi, t, p):
 
     ``h = d/dt(∂T/∂q̇)|_{q̈=0} − ∂T/∂q − (Q¹ − ∂Π/∂q − ∂R/∂q̇)`` (S0 (1.6)).
     """
-    _, d_momentum = jax.jvp(lambda q, t: jax.grad(spec.kinetic, argnums=1)(q, v, pi, t, p), (q, t), (v, _one(t)))
-    h = d_momentum - jax.grad(spec.kinetic)(q, v, pi, t, p) - spec.applied_force(q, v, pi, t, p)
+    (grad_q, _), (_, d_momentum) = jax.jvp(
+        lambda q, t: jax.grad(spec.kinetic, argnums=(0, 1))(q, v, pi, t, p), (q, t), (v, _one(t))
+    )  # one reverse pass of T gives ∂T/∂q and, along the motion, d/dt(∂T/∂q̇)
+    h = d_momentum - grad_q - spec.applied_force(q, v, pi, t, p)
     return spec.inertia(q, pi, t, p), h
 
 
@@ -72,17 +74,17 @@ def _with_reactions(spec: MechanicalSpec, q, pi, t, p):
         return small.cho_solve(chol, x)
 
     response = inverse_mass(react.T)
-    schur = rows @ response
+    schur = small.matmul(rows, response)
 
-    def solve(force, target):
+    def solve(force, target):  # force (n,) and target (m,), or one column per channel: (n, l) and (m, l)
         free = inverse_mass(force)
         if rows.shape[0] == 0:
-            return free, jnp.zeros(0, free.dtype)
+            return free, jnp.zeros((0, *free.shape[1:]), free.dtype)
         if spec.servo is None:  # D = A: the Schur complement A M⁻¹ Aᵀ is symmetric positive definite
-            lam = small.spd_solve(schur, target - rows @ free)
+            lam = small.spd_solve(schur, target - small.matmul(rows, free))
         else:
-            lam = jnp.linalg.solve(schur, target - rows @ free)
-        return free + response @ lam, lam
+            lam = jnp.linalg.solve(schur, target - small.matmul(rows, free))
+        return free + small.matmul(response, lam), lam
 
     return solve
 
@@ -95,9 +97,8 @@ def multipliers(spec: MechanicalSpec, q, v, pi, t, p, rate=0.0):
 
 def multiplier_noise(spec: MechanicalSpec, q, v, pi, t, p):
     """``(q̈_V, λ_V)``: the parts of ``q̈`` and ``λ`` proportional to ``V``, one column per channel."""
-    solve = _with_reactions(spec, q, pi, t, p)
-    target = jnp.zeros(spec.n_ideal + spec.n_servo, q.dtype)
-    return jax.vmap(solve, in_axes=(1, None), out_axes=1)(spec.random_force(q, v, pi, t, p), target)
+    force = spec.random_force(q, v, pi, t, p)
+    return _with_reactions(spec, q, pi, t, p)(force, jnp.zeros((spec.n_ideal + spec.n_servo, force.shape[1]), q.dtype))
 
 
 def compulsion_terms(spec: MechanicalSpec, q, v, pi, t, p):

@@ -14,10 +14,36 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 from jax import Array
 
-__all__ = ["UNROLL_UP_TO", "cho_solve", "cholesky", "psd_factor", "spd_solve"]
+__all__ = ["UNROLL_UP_TO", "cho_solve", "cholesky", "matmul", "psd_factor", "spd_solve"]
 
 UNROLL_UP_TO = 8
 """The largest size factorised entry by entry (the work grows as n³ in the program's size)."""
+
+
+def matmul(a: Array, b: Array) -> Array:
+    """``a @ b`` for small ``a`` (``(m, k)`` or ``(k,)``) and ``b`` (``(k, n)`` or ``(k,)``), as sums of products.
+
+    Under ``vmap`` a product of a few rows is a batched ``dot_general`` per path, which the CPU compiler emits as a
+    reduction kernel of its own, with the transposes and copies that feed it; as sums of entrywise products it is
+    plain arithmetic fused with its neighbours.  Above :data:`UNROLL_UP_TO` in any dimension, ``a @ b``.
+    """
+    a_vector, b_vector = a.ndim == 1, b.ndim == 1
+    left = a[None, :] if a_vector else a
+    right = b[:, None] if b_vector else b
+    (m, k), n = left.shape, right.shape[1]
+    if max(m, k, n) > UNROLL_UP_TO or not (m and n and k):
+        return a @ b
+    out = jnp.stack(
+        [
+            jnp.stack(
+                [sum((left[i, l] * right[l, j] for l in range(1, k)), left[i, 0] * right[0, j]) for j in range(n)]
+            )
+            for i in range(m)
+        ]
+    )
+    if a_vector:
+        out = out[0]
+    return out[..., 0] if b_vector else out
 
 
 def cholesky(a: Array) -> Array:

@@ -417,11 +417,12 @@ class MechanicalSpec(eqx.Module):
 
     def applied_force(self, q, v, pi, t, p):
         """``Q¹ − ∂Π/∂q − ∂R/∂q̇``: all deterministic generalised forces."""
-        return (
-            self.disturbing_force(q, v, pi, t, p)
-            - jax.grad(self.potential_energy)(q, pi, t, p)
-            - jax.grad(self.rayleigh, argnums=1)(q, v, pi, t, p)
-        )
+        force = self.disturbing_force(q, v, pi, t, p)
+        if self.potential is not None:  # without them the terms are zero: nothing to trace or differentiate
+            force = force - jax.grad(self.potential_energy)(q, pi, t, p)
+        if self.dissipation is not None or self.soft is not None:
+            force = force - jax.grad(self.rayleigh, argnums=1)(q, v, pi, t, p)
+        return force
 
     def random_force(self, q, v, pi, t, p):
         """``Q²``, shape ``(n, l)``, then the heat bath's channels (:meth:`bath_force`)."""
@@ -479,7 +480,7 @@ class MechanicalSpec(eqx.Module):
     def constraint_residual(self, q, v, pi, t, p):
         """``(A; C) q̇ + (A0; C0)``; zero on the real motion."""
         rows, bias = self.velocity_constraints(q, pi, t, p)
-        return rows @ v + bias
+        return small.matmul(rows, v) + bias
 
     def pi_drift(self, pi, t, p):
         if self.random_drift is None:  # no random parameters (they need a drift): π is empty
