@@ -7,6 +7,9 @@
 2. γ → ∞ at fixed ``kT``: ``⟨v⟩``, ``m⟨v²⟩/kT``, ``I⟨ω²⟩/kT``, ``J⟨ω²⟩/kT`` and the non-contact mode
    ``J⟨ω_s²⟩/kT`` (``ω_s = ω + (ma/J) w = L_P/J``, the angular momentum about the knife) of the soft model against
    the naive model's.
+4. The naive model's forward drift (``--part naive-table``): ``ChaplyginSleigh(eps=0.25, nu=0.5, mass=1,
+   inertia=1, offset=a)`` (``kT = ν/(4ε) = 0.5``) for ``a = 0, 0.5, 1``, stationary averages over ``t ∈ [20, 40]``:
+   ``E[H]/kT``, ``⟨v⟩`` against the mean balance ``a⟨ω²⟩/(2ε)``, ``m⟨v²⟩/kT`` and ``J⟨ω²⟩/kT``.
 3. Stiffness (``--part stiffness``): the steps and seconds ``solver="exponential"`` needs for every Gibbs statistic
    of part 1 within ``--tol`` (and 4 SE) of Gibbs, at γ = 1 and 10⁶ (the largest of ``dt = 0.25/2^k`` that meets
    it), their ratio, and Euler's and Heun's refusal at γ = 10⁶.
@@ -178,11 +181,52 @@ def stiffness(n_paths, key, tol):
             print(f"{solver}: refused: {str(e).splitlines()[0][:160]}")
 
 
+def naive_table(n_paths, key):
+    """The naive sleigh's stationary statistics against its mean balance, for three offsets (item 4)."""
+    from nhsde.scenes import ChaplyginSleigh
+
+    eps, nu = 0.25, 0.5
+    kt = nu / (4 * eps)
+    print(f"\nnaive sleigh, kT = {kt}, {n_paths} paths, averages over t in [20, 40] (5 saved times)")
+    print("| offset a | E[H]/kT | <v> | a<ω²>/(2ε) | <v> − a<ω²>/(2ε) | m<v²>/kT | J<ω²>/kT |")
+    print("|---|---:|---:|---:|---:|---:|---:|")
+    for a in (0.0, 0.5, 1.0):
+        scene = ChaplyginSleigh(eps=eps, nu=nu, mass=1.0, inertia=1.0, offset=a, drift=False)
+        ens = nhsde.simulate(
+            scene.build(),
+            scene.initial_state(),
+            key,
+            n_paths=n_paths,
+            t1=40.0,
+            dt=0.01,
+            solver="weak2",
+            save=nhsde.Save(n=9, paths=True),
+        )
+        y = np.asarray(ens.paths, np.float64)[:, 4:, :]  # t = 20, 25, …, 40
+        v, omega = y[..., 0], y[..., 1]
+        j = 1.0 + a**2
+
+        def stat(x):
+            per_path = x.mean(axis=1)
+            return per_path.mean(), per_path.std(ddof=1) / np.sqrt(n_paths)
+
+        cells = [
+            stat((0.5 * v**2 + 0.5 * j * omega**2) / kt),
+            stat(v),
+            stat(a * omega**2 / (2 * eps)),
+            stat(v - a * omega**2 / (2 * eps)),
+            stat(v**2 / kt),
+            stat(j * omega**2 / kt),
+        ]
+        print(f"| {a} | " + " | ".join(f"{m:.3f} ± {se:.3f}" for m, se in cells) + " |")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--paths", type=int, default=4096)
     parser.add_argument("--max-steps", type=int, default=30000)
-    parser.add_argument("--part", choices=("all", "work-precision", "large-gamma", "stiffness"), default="all")
+    parts = ("all", "work-precision", "large-gamma", "stiffness", "naive-table")
+    parser.add_argument("--part", choices=parts, default="all")
     parser.add_argument("--tol", type=float, default=0.02, help="accuracy of the Gibbs statistics (stiffness)")
     parser.add_argument("--x64", action="store_true", help="float64 states (float32 loses γ ≳ 10⁵: docstring)")
     args = parser.parse_args()
@@ -195,6 +239,8 @@ def main():
         large_gamma(args.paths, key)
     if args.part in ("all", "stiffness"):
         stiffness(args.paths, key, args.tol)
+    if args.part in ("all", "naive-table"):
+        naive_table(args.paths, key)
 
 
 if __name__ == "__main__":
