@@ -10,6 +10,9 @@
 4. The naive model's forward drift (``--part naive-table``): ``ChaplyginSleigh(eps=0.25, nu=0.5, mass=1,
    inertia=1, offset=a)`` (``kT = ν/(4ε) = 0.5``) for ``a = 0, 0.5, 1``, stationary averages over ``t ∈ [20, 40]``:
    ``E[H]/kT``, ``⟨v⟩`` against the mean balance ``a⟨ω²⟩/(2ε)``, ``m⟨v²⟩/kT`` and ``J⟨ω²⟩/kT``.
+5. Calibration of the derivatives (``--part calibration``): ``moment_sensitivities`` of the soft sleigh in
+   ``(kT, γ)`` at ``t = 20`` (stationary, from rest) over 16 keys; the z-scores of ``∂⟨v⟩/∂kT``, ``∂⟨v⟩/∂γ``,
+   ``∂Var v/∂γ`` (Gibbs: 0) and ``∂(m Var v)/∂kT``, ``∂(I Var ω)/∂kT`` (Gibbs: 1) against their standard errors.
 3. Stiffness (``--part stiffness``): the steps and seconds ``solver="exponential"`` needs for every Gibbs statistic
    of part 1 within ``--tol`` (and 4 SE) of Gibbs, at γ = 1 and 10⁶ (the largest of ``dt = 0.25/2^k`` that meets
    it), their ratio, and Euler's and Heun's refusal at γ = 10⁶.
@@ -221,11 +224,36 @@ def naive_table(n_paths, key):
         print(f"| {a} | " + " | ".join(f"{m:.3f} ± {se:.3f}" for m, se in cells) + " |")
 
 
+def calibration(n_paths, key, n_keys=16):
+    """z-scores of Gibbs's derivatives in ``kT`` and ``γ`` over ``n_keys`` keys (item 5); their sd should be ≈ 1."""
+    scene = ChaplyginSleighInBath(model="soft", drift=False, eps=EPS, kT=KT, gamma=2.0, offset=OFFSET)
+    system, y0 = scene.build(), scene.initial_state()
+    v, omega = system.layout.index("v"), system.layout.index("omega")
+    z = {label: [] for label in ("d<v>/dkT", "d<v>/dγ", "dVar v/dγ", "d(m Var v)/dkT", "d(I Var ω)/dkT")}
+    for k in range(n_keys):
+        sens = nhsde.statistics.moment_sensitivities(
+            system, y0, jax.random.fold_in(key, k), wrt=("kT", "gamma"), n_paths=n_paths, t1=20.0, dt=0.01,
+            solver="weak2", save=nhsde.Save(n=2),
+        )  # fmt: skip
+        dm, dm_se = np.asarray(sens.d_mean)[:, -1], np.asarray(sens.d_mean_se)[:, -1]
+        dc, dc_se = np.asarray(sens.d_cov)[:, -1], np.asarray(sens.d_cov_se)[:, -1]
+        z["d<v>/dkT"].append(dm[0, v] / dm_se[0, v])
+        z["d<v>/dγ"].append(dm[1, v] / dm_se[1, v])
+        z["dVar v/dγ"].append(dc[1, v, v] / dc_se[1, v, v])
+        z["d(m Var v)/dkT"].append((MASS * dc[0, v, v] - 1) / (MASS * dc_se[0, v, v]))
+        z["d(I Var ω)/dkT"].append((INERTIA * dc[0, omega, omega] - 1) / (INERTIA * dc_se[0, omega, omega]))
+    print(f"\nderivative z-scores over {n_keys} keys, {n_paths} paths each, soft sleigh γ = 2, t = 20")
+    print("| derivative | Gibbs | z mean | z sd |\n|---|---:|---:|---:|")
+    for label, values in z.items():
+        expected = 1 if label.startswith("d(") else 0
+        print(f"| {label} | {expected} | {np.mean(values):+.2f} | {np.std(values, ddof=1):.2f} |")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--paths", type=int, default=4096)
     parser.add_argument("--max-steps", type=int, default=30000)
-    parts = ("all", "work-precision", "large-gamma", "stiffness", "naive-table")
+    parts = ("all", "work-precision", "large-gamma", "stiffness", "naive-table", "calibration")
     parser.add_argument("--part", choices=parts, default="all")
     parser.add_argument("--tol", type=float, default=0.02, help="accuracy of the Gibbs statistics (stiffness)")
     parser.add_argument("--x64", action="store_true", help="float64 states (float32 loses γ ≳ 10⁵: docstring)")
@@ -241,6 +269,8 @@ def main():
         stiffness(args.paths, key, args.tol)
     if args.part in ("all", "naive-table"):
         naive_table(args.paths, key)
+    if args.part in ("all", "calibration"):
+        calibration(args.paths, key)
 
 
 if __name__ == "__main__":
