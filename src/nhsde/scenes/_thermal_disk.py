@@ -40,12 +40,9 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from .._params import AbstractParameters, parameter, sqrt_intensity
-from .._system import StateLayout, StochasticSystem
-from ._base import AbstractScene
+from ._bath import AbstractBathScene, on_velocities, with_positions
 
 __all__ = ["BathDiskParameters", "VerticalRollingDiskInBath"]
-
-MODELS = ("ideal", "naive", "soft")
 
 
 class BathDiskParameters(AbstractParameters):
@@ -128,114 +125,84 @@ def _soft_noise(p, dtype):
 # ---------------------------------------------------------------- the vector fields (module level: static, hashable)
 
 
+def _ideal_drift(t, u, p):
+    return _ideal_velocity_drift(u[0], u[1], p)
+
+
+def _ideal_diffusion(t, u, p):
+    return jnp.zeros((2, 2), u.dtype)
+
+
+def _naive_diffusion(t, u, p):
+    return _naive_noise(p, u.dtype)
+
+
+def _soft_drift(t, u, p):
+    return _soft_velocity_drift(u[0], u[1], u[2], u[3], p)
+
+
+def _soft_diffusion(t, u, p):
+    return _soft_noise(p, u.dtype)
+
+
 def _positions(phi, v, w, theta_dot, phi_dot):
     c, s = jnp.cos(phi), jnp.sin(phi)
     return jnp.stack([v * c - w * s, v * s + w * c, theta_dot, phi_dot])
 
 
-def _ideal_drift_full(t, y, p):
-    theta_dot, phi_dot = y[4], y[5]
-    v = p.radius * theta_dot
-    return jnp.concatenate(
-        [_positions(y[3], v, jnp.zeros_like(v), theta_dot, phi_dot), _ideal_velocity_drift(theta_dot, phi_dot, p)]
-    )
+def _ideal_rates(q, u, p):
+    v = p.radius * u[0]
+    return _positions(q[3], v, jnp.zeros_like(v), u[0], u[1])
 
 
-def _ideal_drift_reduced(t, y, p):
-    return _ideal_velocity_drift(y[0], y[1], p)
+def _soft_rates(q, u, p):
+    return _positions(q[3], u[0], u[1], u[2], u[3])
 
 
-def _ideal_diffusion_full(t, y, p):
-    return jnp.zeros((6, 2), y.dtype)
+def _ideal_energy(t, u, p):
+    """``T_c = ½ (I + mR²) θ̇² + ½ J φ̇²``."""
+    return 0.5 * (_rolling_inertia(p) * u[0] ** 2 + p.turn_inertia * u[1] ** 2)
 
 
-def _ideal_diffusion_reduced(t, y, p):
-    return jnp.zeros((2, 2), y.dtype)
+def _soft_energy(t, u, p):
+    """``T = ½ m (v² + w²) + ½ I θ̇² + ½ J φ̇²``."""
+    v, w, theta_dot, phi_dot = u[0], u[1], u[2], u[3]
+    return 0.5 * (p.mass * (v**2 + w**2) + p.roll_inertia * theta_dot**2 + p.turn_inertia * phi_dot**2)
 
 
-def _naive_diffusion_full(t, y, p):
-    return jnp.concatenate([jnp.zeros((4, 2), y.dtype), _naive_noise(p, y.dtype)])
+def _soft_slip(t, u, p):
+    """``v − R θ̇``: the contact's slip along the heading."""
+    return u[0] - p.radius * u[2]
 
 
-def _naive_diffusion_reduced(t, y, p):
-    return _naive_noise(p, y.dtype)
-
-
-def _ideal_linear_full(p):
-    return jnp.zeros((6, 6), p.eps.dtype).at[4:, 4:].set(_ideal_linear(p))
-
-
-def _soft_drift_full(t, y, p):
-    v, w, theta_dot, phi_dot = y[4], y[5], y[6], y[7]
-    return jnp.concatenate(
-        [_positions(y[3], v, w, theta_dot, phi_dot), _soft_velocity_drift(v, w, theta_dot, phi_dot, p)]
-    )
-
-
-def _soft_drift_reduced(t, y, p):
-    return _soft_velocity_drift(y[0], y[1], y[2], y[3], p)
-
-
-def _soft_diffusion_full(t, y, p):
-    return jnp.concatenate([jnp.zeros((4, 6), y.dtype), _soft_noise(p, y.dtype)])
-
-
-def _soft_diffusion_reduced(t, y, p):
-    return _soft_noise(p, y.dtype)
-
-
-def _soft_linear_full(p):
-    return jnp.zeros((8, 8), p.eps.dtype).at[4:, 4:].set(_soft_linear(p))
-
-
-def _ideal_energy(offset):
-    def energy(t, y, p):
-        """``T_c = ½ (I + mR²) θ̇² + ½ J φ̇²``."""
-        return 0.5 * (_rolling_inertia(p) * y[offset] ** 2 + p.turn_inertia * y[offset + 1] ** 2)
-
-    return energy
-
-
-def _soft_energy(offset):
-    def energy(t, y, p):
-        """``T = ½ m (v² + w²) + ½ I θ̇² + ½ J φ̇²``."""
-        v, w, theta_dot, phi_dot = y[offset], y[offset + 1], y[offset + 2], y[offset + 3]
-        return 0.5 * (p.mass * (v**2 + w**2) + p.roll_inertia * theta_dot**2 + p.turn_inertia * phi_dot**2)
-
-    return energy
-
-
-def _soft_slip(offset):
-    def slip(t, y, p):
-        """``v − R θ̇``: the contact's slip along the heading."""
-        return y[offset] - p.radius * y[offset + 2]
-
-    return slip
-
-
-_OBSERVABLES = {
-    ("soft", True): (("energy", _soft_energy(4)), ("slip", _soft_slip(4))),
-    ("soft", False): (("energy", _soft_energy(0)), ("slip", _soft_slip(0))),
-    ("ideal", True): (("energy", _ideal_energy(4)),),
-    ("ideal", False): (("energy", _ideal_energy(0)),),
-}
 _POSITIONS = (
     ("x", "y", "theta", "phi"),
     ("dependent_coordinate", "dependent_coordinate", "independent_coordinate", "independent_coordinate"),
 )
-_SOFT_VELOCITIES = ("v", "w", "theta_dot", "phi_dot")
+_IDEAL_VELOCITIES, _SOFT_VELOCITIES = ("theta_dot", "phi_dot"), ("v", "w", "theta_dot", "phi_dot")
+_IDEAL_OBSERVABLES, _SOFT_OBSERVABLES = (("energy", _ideal_energy),), (("energy", _soft_energy), ("slip", _soft_slip))
+_REDUCED = {
+    # model: (velocity names, drift, diffusion, linear drift, noise channels, q̇, observables)
+    "ideal": (_IDEAL_VELOCITIES, _ideal_drift, _ideal_diffusion, _ideal_linear, 2, _ideal_rates, _IDEAL_OBSERVABLES),
+    "naive": (_IDEAL_VELOCITIES, _ideal_drift, _naive_diffusion, _ideal_linear, 2, _ideal_rates, _IDEAL_OBSERVABLES),
+    "soft": (_SOFT_VELOCITIES, _soft_drift, _soft_diffusion, _soft_linear, 6, _soft_rates, _SOFT_OBSERVABLES),
+}
 _FIELDS = {
-    # (model, drift): (velocity names, drift, diffusion, linear drift, noise channels)
-    ("ideal", True): (("theta_dot", "phi_dot"), _ideal_drift_full, _ideal_diffusion_full, _ideal_linear_full, 2),
-    ("ideal", False): (("theta_dot", "phi_dot"), _ideal_drift_reduced, _ideal_diffusion_reduced, _ideal_linear, 2),
-    ("naive", True): (("theta_dot", "phi_dot"), _ideal_drift_full, _naive_diffusion_full, _ideal_linear_full, 2),
-    ("naive", False): (("theta_dot", "phi_dot"), _ideal_drift_reduced, _naive_diffusion_reduced, _ideal_linear, 2),
-    ("soft", True): (_SOFT_VELOCITIES, _soft_drift_full, _soft_diffusion_full, _soft_linear_full, 6),
-    ("soft", False): (_SOFT_VELOCITIES, _soft_drift_reduced, _soft_diffusion_reduced, _soft_linear, 6),
+    # (model, drift): (velocity names, drift, diffusion, linear drift, noise channels, observables)
+    **{(model, False): (*f[:5], f[6]) for model, f in _REDUCED.items()},
+    **{
+        (model, True): (
+            f[0],
+            *with_positions(4, f[5], *f[1:4]),
+            f[4],
+            tuple((name, on_velocities(4, g)) for name, g in f[6]),
+        )
+        for model, f in _REDUCED.items()
+    },
 }
 
 
-class VerticalRollingDiskInBath(AbstractScene):
+class VerticalRollingDiskInBath(AbstractBathScene):
     """The vertical rolling disk in a heat bath of temperature kT: ideal, naive thermal or soft (viscous) contact.
 
     ``model`` picks how the contact is realised (module docstring): ``"soft"`` (default), a viscous contact of
@@ -261,34 +228,12 @@ class VerticalRollingDiskInBath(AbstractScene):
 
     name: ClassVar[str] = "vertical-rolling-disk-in-bath"
     Parameters: ClassVar[type[BathDiskParameters]] = BathDiskParameters
-    intensities: ClassVar[tuple[str, ...]] = ("kT",)
+    fields: ClassVar[dict] = _FIELDS
+    positions: ClassVar[tuple[tuple[str, ...], tuple[str, ...]]] = _POSITIONS
 
     params: BathDiskParameters
     model: str = eqx.field(static=True)
     drift: bool = eqx.field(static=True)
-
-    def __init__(self, *, model: str = "soft", drift: bool = True, **params):
-        if model not in MODELS:
-            raise ValueError(f"model={model!r}; allowed: {', '.join(repr(m) for m in MODELS)}.")
-        self.params = BathDiskParameters(**params)
-        self.model = model
-        self.drift = bool(drift)
-
-    def build(self) -> StochasticSystem:
-        velocities, drift, diffusion, linear, channels = _FIELDS[self.model, self.drift]
-        names, roles = velocities, ("velocity",) * len(velocities)
-        if self.drift:
-            names, roles = _POSITIONS[0] + names, _POSITIONS[1] + roles
-        return StochasticSystem(
-            drift_fn=drift,
-            diffusion_fn=diffusion,
-            params=self.params,
-            layout=StateLayout(names, roles),
-            noise_dim=channels,
-            additive_noise=True,
-            linear_drift=linear,
-            observables=_OBSERVABLES["soft" if self.model == "soft" else "ideal", self.drift],
-        )
 
     def initial_state(self):
         """Rolling straight ahead from the origin at ``θ̇ = 1`` (``v = R``), without slip."""

@@ -43,12 +43,9 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from .._params import AbstractParameters, parameter, sqrt_intensity
-from .._system import StateLayout, StochasticSystem
-from ._base import AbstractScene
+from ._bath import AbstractBathScene, on_velocities, with_positions
 
 __all__ = ["BathSleighParameters", "ChaplyginSleighInBath"]
-
-MODELS = ("ideal", "naive", "soft")
 
 
 class BathSleighParameters(AbstractParameters):
@@ -123,97 +120,68 @@ def _soft_noise(p, dtype):
 # ---------------------------------------------------------------- the vector fields (module level: static, hashable)
 
 
+def _ideal_drift(t, u, p):
+    return _ideal_velocity_drift(u[0], u[1], p)
+
+
+def _ideal_diffusion(t, u, p):
+    return jnp.zeros((2, 2), u.dtype)
+
+
+def _naive_diffusion(t, u, p):
+    return _naive_noise(p, u.dtype)
+
+
+def _soft_drift(t, u, p):
+    return _soft_velocity_drift(u[0], u[1], u[2], p)
+
+
+def _soft_diffusion(t, u, p):
+    return _soft_noise(p, u.dtype)
+
+
 def _positions(theta, v, w, omega):
     c, s = jnp.cos(theta), jnp.sin(theta)
     return jnp.stack([v * c - w * s, v * s + w * c, omega])
 
 
-def _ideal_drift_full(t, y, p):
-    v, omega = y[3], y[4]
-    return jnp.concatenate([_positions(y[2], v, jnp.zeros_like(v), omega), _ideal_velocity_drift(v, omega, p)])
+def _ideal_rates(q, u, p):
+    return _positions(q[2], u[0], jnp.zeros_like(u[0]), u[1])
 
 
-def _ideal_drift_reduced(t, y, p):
-    return _ideal_velocity_drift(y[0], y[1], p)
+def _soft_rates(q, u, p):
+    return _positions(q[2], u[0], u[1], u[2])
 
 
-def _ideal_diffusion_full(t, y, p):
-    return jnp.zeros((5, 2), y.dtype)
+def _ideal_energy(t, u, p):
+    """``H = ½(m v² + J ω²)``."""
+    return 0.5 * (p.mass * u[0] ** 2 + _j(p) * u[1] ** 2)
 
 
-def _ideal_diffusion_reduced(t, y, p):
-    return jnp.zeros((2, 2), y.dtype)
-
-
-def _naive_diffusion_full(t, y, p):
-    return jnp.concatenate([jnp.zeros((3, 2), y.dtype), _naive_noise(p, y.dtype)])
-
-
-def _naive_diffusion_reduced(t, y, p):
-    return _naive_noise(p, y.dtype)
-
-
-def _ideal_linear_full(p):
-    return jnp.zeros((5, 5), p.eps.dtype).at[3:, 3:].set(_ideal_linear(p))
-
-
-def _soft_drift_full(t, y, p):
-    v, w, omega = y[3], y[4], y[5]
-    return jnp.concatenate([_positions(y[2], v, w, omega), _soft_velocity_drift(v, w, omega, p)])
-
-
-def _soft_drift_reduced(t, y, p):
-    return _soft_velocity_drift(y[0], y[1], y[2], p)
-
-
-def _soft_diffusion_full(t, y, p):
-    return jnp.concatenate([jnp.zeros((3, 3), y.dtype), _soft_noise(p, y.dtype)])
-
-
-def _soft_diffusion_reduced(t, y, p):
-    return _soft_noise(p, y.dtype)
-
-
-def _soft_linear_full(p):
-    return jnp.zeros((6, 6), p.eps.dtype).at[3:, 3:].set(_soft_linear(p))
-
-
-def _ideal_energy(offset):
-    def energy(t, y, p):
-        """``H = ½(m v² + J ω²)``."""
-        return 0.5 * (p.mass * y[offset] ** 2 + _j(p) * y[offset + 1] ** 2)
-
-    return energy
-
-
-def _soft_energy(offset):
-    def energy(t, y, p):
-        """``H = ½ m (v² + (w + aω)²) + ½ I ω²``."""
-        v, w, omega = y[offset], y[offset + 1], y[offset + 2]
-        return 0.5 * (p.mass * (v**2 + (w + p.offset * omega) ** 2) + p.inertia * omega**2)
-
-    return energy
+def _soft_energy(t, u, p):
+    """``H = ½ m (v² + (w + aω)²) + ½ I ω²``."""
+    v, w, omega = u[0], u[1], u[2]
+    return 0.5 * (p.mass * (v**2 + (w + p.offset * omega) ** 2) + p.inertia * omega**2)
 
 
 _POSITIONS = (("x", "y", "theta"), ("dependent_coordinate", "dependent_coordinate", "independent_coordinate"))
+_REDUCED = {
+    # model: (velocity names, drift, diffusion, linear drift, noise channels, q̇, energy)
+    "ideal": (("v", "omega"), _ideal_drift, _ideal_diffusion, _ideal_linear, 2, _ideal_rates, _ideal_energy),
+    "naive": (("v", "omega"), _ideal_drift, _naive_diffusion, _ideal_linear, 2, _ideal_rates, _ideal_energy),
+    "soft": (("v", "slip", "omega"), _soft_drift, _soft_diffusion, _soft_linear, 3, _soft_rates, _soft_energy),
+}
 _FIELDS = {
-    # (model, drift): (velocity names, drift, diffusion, linear drift, noise channels)
-    ("ideal", True): (("v", "omega"), _ideal_drift_full, _ideal_diffusion_full, _ideal_linear_full, 2),
-    ("ideal", False): (("v", "omega"), _ideal_drift_reduced, _ideal_diffusion_reduced, _ideal_linear, 2),
-    ("naive", True): (("v", "omega"), _ideal_drift_full, _naive_diffusion_full, _ideal_linear_full, 2),
-    ("naive", False): (("v", "omega"), _ideal_drift_reduced, _naive_diffusion_reduced, _ideal_linear, 2),
-    ("soft", True): (("v", "slip", "omega"), _soft_drift_full, _soft_diffusion_full, _soft_linear_full, 3),
-    ("soft", False): (("v", "slip", "omega"), _soft_drift_reduced, _soft_diffusion_reduced, _soft_linear, 3),
-}
-_ENERGIES = {
-    ("ideal", True): _ideal_energy(3),
-    ("ideal", False): _ideal_energy(0),
-    ("soft", True): _soft_energy(3),
-    ("soft", False): _soft_energy(0),
+    # (model, drift): (velocity names, drift, diffusion, linear drift, noise channels, observables)
+    **{(model, False): (*f[:5], (("energy", f[6]),)) for model, f in _REDUCED.items()},
+    **{
+        (model, True): (f[0], *with_positions(3, f[5], *f[1:4]), f[4], (("energy", on_velocities(3, f[6])),))
+        for model, f in _REDUCED.items()
+    },
 }
 
 
-class ChaplyginSleighInBath(AbstractScene):
+class ChaplyginSleighInBath(AbstractBathScene):
     """The Chaplygin sleigh in a heat bath of temperature kT: ideal, naive thermal or soft (viscous) knife.
 
     ``model`` picks how the knife is realised (module docstring): ``"soft"`` (default), a viscous contact of
@@ -238,35 +206,12 @@ class ChaplyginSleighInBath(AbstractScene):
 
     name: ClassVar[str] = "chaplygin-sleigh-in-bath"
     Parameters: ClassVar[type[BathSleighParameters]] = BathSleighParameters
-    intensities: ClassVar[tuple[str, ...]] = ("kT",)
+    fields: ClassVar[dict] = _FIELDS
+    positions: ClassVar[tuple[tuple[str, ...], tuple[str, ...]]] = _POSITIONS
 
     params: BathSleighParameters
     model: str = eqx.field(static=True)
     drift: bool = eqx.field(static=True)
-
-    def __init__(self, *, model: str = "soft", drift: bool = True, **params):
-        if model not in MODELS:
-            raise ValueError(f"model={model!r}; allowed: {', '.join(repr(m) for m in MODELS)}.")
-        self.params = BathSleighParameters(**params)
-        self.model = model
-        self.drift = bool(drift)
-
-    def build(self) -> StochasticSystem:
-        velocities, drift, diffusion, linear, channels = _FIELDS[self.model, self.drift]
-        names, roles = velocities, ("velocity",) * len(velocities)
-        if self.drift:
-            names, roles = _POSITIONS[0] + names, _POSITIONS[1] + roles
-        energy = _ENERGIES["soft" if self.model == "soft" else "ideal", self.drift]
-        return StochasticSystem(
-            drift_fn=drift,
-            diffusion_fn=diffusion,
-            params=self.params,
-            layout=StateLayout(names, roles),
-            noise_dim=channels,
-            additive_noise=True,
-            linear_drift=linear,
-            observables=(("energy", energy),),
-        )
 
     def initial_state(self):
         """Moving straight ahead at unit speed from the origin, without slip."""
