@@ -120,3 +120,23 @@ def test_the_main_job_compiles_few_programs():
     assert counts["rc"] == 0 and "closed form (S0 (3.1))" in counts["out"]
     assert len(counts["compiled"]) <= 20, counts["compiled"]
     assert counts["compiled"].count("jit(_sensitivities)") == 1, counts["compiled"]
+
+
+NORMAL_APPROXIMATION = (
+    PRELUDE
+    + r"""
+counts = {}
+for label in ("first", "again"):
+    del compiled[:]
+    nhsde.statistics.normal_approximation(system, y0, t1=1.0, dt=0.25)
+    counts[label] = list(compiled)
+print(json.dumps(counts))
+"""
+)
+
+
+def test_a_repeated_normal_approximation_compiles_nothing():
+    """The closure's structure probe (second-order autodiff of the vector fields, seconds on a spec scene) is
+    compiled once per system, not once per call."""
+    counts = counted(NORMAL_APPROXIMATION)
+    assert counts["again"] == [], counts["again"]

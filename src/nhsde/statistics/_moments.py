@@ -19,6 +19,7 @@ in reverse mode.  Their transient solution is
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 
 import diffrax as dfx
@@ -28,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .._misc import check_number, is_concrete, real_state
+from .._misc import FAST_COMPILE, check_number, is_concrete, real_state
 from .._params import validated
 from .._system import StochasticSystem
 from ..noise import driver_intensity
@@ -48,39 +49,67 @@ def _hermite(order: int, dim: int, dtype):
     return jnp.asarray(nodes, dtype), jnp.asarray(weights, dtype)
 
 
+def _dependence(system: StochasticSystem, points: Array, directions: Array):
+    """``d/dZ (∂a/∂Z, b)`` at each point along each direction: ``(point, direction, …)`` arrays."""
+    # called with t = 0.0 (a float: VectorField's annotation asks for an array)
+    drift: Callable[..., Array] = system.drift_fn
+    diffusion: Callable[..., Array] = system.diffusion_fn
+
+    def coefficients(z):
+        return jax.jacfwd(lambda y: drift(0.0, y, system.params))(z), diffusion(0.0, z, system.params)
+
+    def tangents(z, direction):
+        return jax.jvp(coefficients, (z,), (direction,))[1]
+
+    return jax.vmap(jax.vmap(tangents, in_axes=(None, 0)), in_axes=(0, None))(points, directions)
+
+
+@functools.lru_cache(maxsize=32)
+def _dependence_program(static, treedef, shapes):
+    """:func:`_dependence` compiled once per system structure (second-order autodiff of the vector fields: its
+    tracing and compilation cost seconds on a spec scene)."""
+
+    def run(dynamic):
+        return _dependence(*eqx.combine(dynamic, static))
+
+    avals = jax.tree_util.tree_unflatten(treedef, shapes)
+    return jax.jit(run, compiler_options=FAST_COMPILE).lower(avals).compile()
+
+
 def _nonlinear_components(system: StochasticSystem, dtype) -> tuple[int, ...]:
     """Components on which ``∂a/∂Z`` or ``b`` depend; ``a`` is affine in the others with constant coefficients,
     so Gaussian expectations need cubature over these only (none for a linear system).
 
     Found by differentiating ``(∂a/∂Z, b)`` along each component at random states, with every parameter leaf
     replaced by a random value in ``[0.5, 1.5]``: the structure, not the current (possibly traced) values, decides.
+    The program is compiled ahead and called on concrete arrays, so this holds inside an outer ``jit`` too.
     """
     rng = np.random.default_rng(0)
-    # called with t = 0.0 (a float: VectorField's annotation asks for an array)
-    drift: Callable[..., Array] = system.drift_fn
-    diffusion: Callable[..., Array] = system.diffusion_fn
     d = system.state_dim
-    with jax.ensure_compile_time_eval():  # concrete even inside an outer jit
-        params = jax.tree_util.tree_map(
-            lambda p: (
-                jnp.asarray(rng.uniform(0.5, 1.5, np.shape(p)), dtype)
-                if jnp.issubdtype(jnp.result_type(p), jnp.floating)
-                else p
-            ),
-            system.params,
-        )
-
-        def coefficients(z):
-            return jax.jacfwd(lambda y: drift(0.0, y, params))(z), diffusion(0.0, z, params)
-
-        def tangents(z, direction):
-            return jax.jvp(coefficients, (z,), (direction,))[1]
-
-        probe = jax.jit(jax.vmap(jax.vmap(tangents, in_axes=(None, 0)), in_axes=(0, None)))
-        out = probe(jnp.asarray(rng.normal(size=(3, d)), dtype), jnp.eye(d, dtype=dtype))  # (point, direction, …)
-        found = np.zeros(d, bool)
-        for t in out:  # NaN counts as dependence
-            found |= np.asarray(jnp.any(t.reshape(3, d, -1) != 0, axis=(0, 2)))
+    params = jax.tree_util.tree_map(
+        lambda p: (
+            np.asarray(rng.uniform(0.5, 1.5, np.shape(p)), dtype)
+            if jnp.issubdtype(jnp.result_type(p), jnp.floating)
+            else p
+        ),
+        system.params,
+    )
+    probe = (
+        eqx.tree_at(lambda s: s.params, system, params),
+        rng.normal(size=(3, d)).astype(dtype),
+        np.eye(d, dtype=dtype),
+    )
+    dynamic, static = eqx.partition(probe, eqx.is_array)
+    leaves, treedef = jax.tree_util.tree_flatten(dynamic)
+    shapes = tuple(jax.ShapeDtypeStruct(np.shape(x), jnp.result_type(x)) for x in leaves)
+    try:
+        program = _dependence_program(static, treedef, shapes)
+    except TypeError:  # a static part that cannot be hashed: compile for this call alone
+        program = _dependence_program.__wrapped__(static, treedef, shapes)
+    out = program(dynamic)
+    found = np.zeros(d, bool)
+    for t in jax.tree_util.tree_leaves(out):  # NaN counts as dependence
+        found |= np.any(np.asarray(t).reshape(3, d, -1) != 0, axis=(0, 2))
     return tuple(int(i) for i in np.flatnonzero(found))
 
 
