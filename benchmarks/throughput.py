@@ -298,14 +298,23 @@ def var_and_se_numpy(x):
 # gradient variants are built with has_aux so the standard error rides along.
 
 
-def nhsde_stat(scene, n_paths, steps):
+def nhsde_stat(scene, n_paths, steps, chunk_size=None):
     cfg = SCENES[scene]
     y0 = jnp.asarray(cfg["y0"], DTYPE)
+    batching = nhsde.Batching(chunk_size=chunk_size)
 
     def f(theta, key):
         system = cfg["make"](eps=theta[0], nu=theta[1]).build()
         ens = nhsde.simulate(
-            system, y0, key, n_paths=n_paths, t1=steps * DT, dt=DT, solver="euler", save=nhsde.Save(n=2)
+            system,
+            y0,
+            key,
+            n_paths=n_paths,
+            t1=steps * DT,
+            dt=DT,
+            solver="euler",
+            save=nhsde.Save(n=2),
+            batching=batching,
         )
         stats = nhsde.statistics.drift_statistics(ens)
         return stats.fluctuation[-1, 0, 0], jax.lax.stop_gradient(stats.fluctuation_se[-1, 0, 0])
@@ -456,6 +465,9 @@ def make_cases(scene, args):
     add("nhsde simulate() call", "forward", n, lambda: direct(theta, key))
     add("nhsde", "value_and_grad", n, lambda: vg(theta, key), ("nhsde", "forward"))
     add("nhsde", "jacfwd", n, lambda: jf(theta, key), ("nhsde", "forward"))
+    if n > 8192:  # the CPU's default chunk, beside the backend's default
+        chunked = jax.jit(nhsde_stat(scene, n, steps, chunk_size=8192))
+        add("nhsde, chunks of 8192", "forward", n, lambda: chunked(theta, key))
 
     g = scan_stat(scene, n, steps)
     add("(a) lax.scan", "forward", n, (lambda h: lambda: h(theta, key_a))(jax.jit(g)))
