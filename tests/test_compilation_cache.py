@@ -82,10 +82,14 @@ def test_the_solve_itself_is_cached(tmp_path, caplog):
     ask()
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith("jit__run-")], sorted(tmp_path.iterdir())
     jax.clear_caches()
+    events = _hits()
     with jax.explain_cache_misses(True), caplog.at_level("WARNING", logger="jax"):
         ask()
     misses = [r.getMessage() for r in caplog.records if "PERSISTENT COMPILATION CACHE MISS" in r.getMessage()]
-    assert misses and not [m for m in misses if "'jit__run'" in m], misses
+    # the cache answered (else an empty list of misses proves nothing); which other programs miss depends on
+    # how fast the machine compiled them the first time
+    assert events.count("/jax/compilation_cache/cache_hits") > 0, events
+    assert not [m for m in misses if "'jit__run'" in m], misses
 
 
 def test_the_main_jobs_sensitivities_are_cached_and_found_again(tmp_path, monkeypatch, capsys, caplog):
