@@ -736,9 +736,10 @@ def simulate_run(
             raise ValueError(f"save.about has shape {about.shape}; expected ({n_save}, {len(names)}).")
     batching = run.batching
     devices = tuple(jax.devices()) if batching.devices is None else tuple(batching.devices)
+    platform = devices[0].platform if devices else jax.default_backend()
     chunk_size = batching.chunk_size
     if chunk_size is None:
-        chunk_size = default_chunk_size(devices[0].platform)
+        chunk_size = default_chunk_size(platform)
     # never more than the paths need: padding is simulated work that no statistic uses
     chunk_size = min(check_number("chunk_size", chunk_size, integer=True), BLOCK * math.ceil(n_paths / BLOCK))
     check_ranges(cast_floats(system.params, y0.dtype))  # a radius of 1e-50 is 0 in float32
@@ -797,7 +798,7 @@ def simulate_run(
         and concrete_primal(system.params) is None
         and not outcome_by_caller,
         poll=n_paths * n_steps * system.state_dim > POLL_ABOVE,
-        step_block=step_block(devices[0].platform) if steps_as_data else 1,
+        step_block=step_block(platform) if steps_as_data else 1,
         # forward mode of concrete values (the estimators' tangents): the primal values were checked when built
         params_checked=is_concrete(system.params) or _FORWARD_ONLY.get() or parameters_checked_on_host(),
         nonzero_checked=parameters_checked_on_host()
