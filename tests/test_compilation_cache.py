@@ -113,3 +113,27 @@ def test_the_main_jobs_sensitivities_are_cached_and_found_again(tmp_path, monkey
     requests = events.count("/jax/compilation_cache/compile_requests_use_cache")
     assert requests > 0 and events.count("/jax/compilation_cache/cache_hits") == requests
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith("jit__sensitivities-")] == written
+
+
+def test_a_fit_through_the_moment_equations_is_cached(tmp_path, caplog):
+    """The optimiser's step through the moment equations has no host callback (the fit checks its loss and
+    gradient on the host), so its next compilation (as in a new process) is found in the cache."""
+    from nhsde import fit
+
+    nhsde.enable_compilation_cache(tmp_path)
+    scene = nhsde.scenes.BallOnVibratingPlane(eps=0.8, nu=0.4)
+    observed = fit.Observations.from_statistics([3.0], ("x",), [[0.0]], [[[2.7]]], [[0.05]], [[[0.11]]], 1000)
+    model = fit.MomentEquations(y0=scene.initial_state(), dt=0.5)
+
+    def ask():
+        return fit.estimate(scene.build(), observed, model, vary=("nu",), max_steps=3)
+
+    first = ask()
+    jax.clear_caches()
+    events = _hits()
+    with jax.explain_cache_misses(True), caplog.at_level("WARNING", logger="jax"):
+        again = ask()
+    misses = [r.getMessage() for r in caplog.records if "PERSISTENT COMPILATION CACHE MISS" in r.getMessage()]
+    assert events.count("/jax/compilation_cache/cache_hits") > 0, events
+    assert not [m for m in misses if "'jit__step'" in m or "'jit__statistics_jacobian'" in m], misses
+    assert again.values.tolist() == first.values.tolist()

@@ -599,8 +599,12 @@ def estimate(
             new_phi, state, value, grad = _step(phi, state, problem, optimizer, reuse)
         loss = float(np.asarray(value))
         history.append([loss, *np.asarray(problem.theta(phi))])
-        if not np.isfinite(loss):
-            raise FloatingPointError(f"estimate: the loss is {loss} at {dict(zip(vary, history[-1][1:]))}.")
+        if not np.isfinite(loss) or not np.all(np.isfinite(np.asarray(grad))):  # the programs leave it to the host
+            raise FloatingPointError(
+                f"estimate: the loss is {loss} and its gradient {np.asarray(grad).tolist()} at "
+                + ", ".join(f"{n}={float(v):.6g}" for n, v in zip(vary, history[-1][1:]))
+                + "; the model's statistics are not finite there."
+            )
         if float(jnp.linalg.norm(grad)) <= gtol:
             converged = True
             break
@@ -609,6 +613,9 @@ def estimate(
 
     with in_range():
         g = np.asarray(_statistics_jacobian(theta, problem), np.float64)
+    if not np.all(np.isfinite(g)):
+        at = ", ".join(f"{n}={float(v):.6g}" for n, v in zip(vary, np.asarray(theta)))
+        raise FloatingPointError(f"estimate: the model's ∂s/∂θ is not finite at {at}.")
     cov_model = np.asarray(model.noise_covariance(problem.system_at(theta), problem.ts, observed.names), np.float64)
     cov_model = cov_model[both]
     w_g = np.linalg.solve(cov_obs, g)  # Σ_obs⁻¹ G
