@@ -110,6 +110,21 @@ class AbstractStatisticsModel(eqx.Module):
         """
         return np.zeros((statistic_size(len(ts), len(names)), len(vary)))
 
+    def at_estimate(
+        self, system: StochasticSystem, ts: tuple[float, ...], names: tuple[str, ...], vary: tuple[str, ...]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """What a fit reports at its estimate, at ``system``'s parameters: the statistic vector ``s (S,)``, its
+        Jacobian ``∂s/∂θ (S, p)`` in ``vary`` and the Jacobian's Monte-Carlo standard errors, and the covariance
+        ``(S, S)`` of the model's own Monte-Carlo error.  Here ``s`` and ``∂s/∂θ`` come from one compiled forward-mode
+        pass of :meth:`moments`."""
+        value, jacobian = _value_and_jacobian(self, system, ts, names, vary)
+        return (
+            np.asarray(value, np.float64),
+            np.asarray(jacobian, np.float64),
+            np.asarray(self.jacobian_se(system, ts, names, vary), np.float64),
+            np.asarray(self.noise_covariance(system, ts, names), np.float64),
+        )
+
     def statistics_covariance(
         self, system: StochasticSystem, ts: tuple[float, ...], names: tuple[str, ...], n_paths: int
     ) -> np.ndarray | None:
@@ -210,17 +225,26 @@ class Simulated(AbstractStatisticsModel):
         :func:`~nhsde.statistics.moment_sensitivities` (per-path tangents, forward mode); its
         Jacobian equals ``jax.jacfwd`` of :meth:`moments`' statistic vector to rounding.
         """
-        index, options = self._options(ts, names, paths=False)
+        return self.at_estimate(system, ts, names, vary)[1:3]
+
+    def jacobian_se(self, system, ts, names, vary):
+        return self.sensitivities(system, ts, names, vary)[1]
+
+    def at_estimate(self, system, ts, names, vary):
+        """One run of :func:`~nhsde.statistics.moment_sensitivities` gives it all, from the same paths: ``s``,
+        ``∂s/∂θ`` and its errors from the per-path tangents, the covariance of ``s`` from the per-path values."""
+        index, options = self._options(ts, names, paths=True)
         sens = moment_sensitivities(system, self.y0, self.key, wrt=tuple(vary), **options)
 
         def columns(d_mean, d_cov):
             cols = [statistic_vector(d_mean[a][index], d_cov[a][index]) for a in range(len(vary))]
             return np.stack([np.asarray(c, np.float64) for c in cols], axis=-1)
 
-        return columns(sens.d_mean, sens.d_cov), columns(sens.d_mean_se, sens.d_cov_se)
-
-    def jacobian_se(self, system, ts, names, vary):
-        return self.sensitivities(system, ts, names, vary)[1]
+        value = np.asarray(statistic_vector(sens.mean[index], sens.cov[index]), np.float64)
+        paths = sens.ensemble.paths
+        assert paths is not None  # moment_sensitivities keeps the paths
+        noise = statistic_covariance(np.asarray(paths)[:, index])
+        return value, columns(sens.d_mean, sens.d_cov), columns(sens.d_mean_se, sens.d_cov_se), noise
 
     def moments(self, system, ts, names):
         ens, index = self._run(system, ts, names, paths=False)
@@ -387,9 +411,17 @@ def _step(phi, state, problem: _Problem, optimizer, reuse: bool):
 
 
 @eqx.filter_jit
-def _statistics_jacobian(theta, problem: _Problem):
-    """``∂s/∂θ`` in forward mode (a few parameters; every solver of ``simulate`` has it)."""
-    return jax.jacfwd(problem.statistics)(theta)
+def _value_and_jacobian(model: AbstractStatisticsModel, system: StochasticSystem, ts, names, vary):
+    """The statistic vector ``s`` of ``model`` and ``∂s/∂θ`` in the parameters ``vary``, in forward mode (a few
+    parameters; every solver of ``simulate`` has it): one pass, the primal computed once."""
+
+    def statistics(theta):
+        params = system.params.replace(**{n: theta[i] for i, n in enumerate(vary)})
+        return statistic_vector(*model.moments(eqx.tree_at(lambda x: x.params, system, params), ts, names))
+
+    theta = jnp.stack([jnp.asarray(getattr(system.params, n)) for n in vary])
+    values, columns = jax.vmap(lambda v: jax.jvp(statistics, (theta,), (v,)))(jnp.eye(len(vary), dtype=theta.dtype))
+    return values[0], columns.T
 
 
 @functools.cache
@@ -612,12 +644,11 @@ def estimate(
     theta = problem.theta(phi)
 
     with in_range():
-        g = np.asarray(_statistics_jacobian(theta, problem), np.float64)
-    if not np.all(np.isfinite(g)):
+        value, g, g_se, cov_model = model.at_estimate(problem.system_at(theta), problem.ts, observed.names, vary)
+    value, g, g_se, cov_model = value[used], g[used], g_se[used], cov_model[both]
+    if not (np.all(np.isfinite(value)) and np.all(np.isfinite(g))):
         at = ", ".join(f"{n}={float(v):.6g}" for n, v in zip(vary, np.asarray(theta)))
-        raise FloatingPointError(f"estimate: the model's ∂s/∂θ is not finite at {at}.")
-    cov_model = np.asarray(model.noise_covariance(problem.system_at(theta), problem.ts, observed.names), np.float64)
-    cov_model = cov_model[both]
+        raise FloatingPointError(f"estimate: the model's statistics or their ∂s/∂θ are not finite at {at}.")
     w_g = np.linalg.solve(cov_obs, g)  # Σ_obs⁻¹ G
     fisher = g.T @ w_g
     if not np.all(np.isfinite(fisher)) or np.linalg.cond(fisher) > 1e12:
@@ -627,11 +658,8 @@ def estimate(
         )
     h_inv = np.linalg.inv(fisher)
     cov = h_inv + h_inv @ w_g.T @ cov_model @ w_g @ h_inv
-    with in_range():
-        r = np.asarray(problem.statistics(theta), np.float64) - observed_s
+    r = value - observed_s
     chi2 = float(r @ np.linalg.solve(cov_obs + cov_model, r))
-    g_se = np.asarray(model.jacobian_se(problem.system_at(theta), problem.ts, observed.names, vary), np.float64)
-    g_se = g_se[used]
     result = FitResult(
         names=vary,
         values=np.asarray(theta, np.float64),
