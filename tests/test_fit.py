@@ -335,3 +335,19 @@ def test_moment_equations_that_overflow_stop_the_fit_with_a_clear_error():
     message = r"the loss is inf and its gradient \[nan\] at eps=1000; the model's statistics are not finite"
     with pytest.raises(FloatingPointError, match=message):
         fit.estimate(scene.build(), observed, model, vary=("eps",), max_steps=3)
+
+
+def test_progress_is_called_once_per_optimizer_step():
+    """``estimate(progress=...)`` sees each step's loss and values, the same as the fit's history."""
+    scene = BallOnVibratingPlane(eps=0.8, nu=0.4)
+    observed = fit.Observations.from_statistics([3.0], ("x",), [[0.0]], [[[2.7]]], [[0.05]], [[[0.11]]], 1000)
+    seen = []
+    result = fit.estimate(
+        scene.build(),
+        observed,
+        fit.MomentEquations(y0=scene.initial_state(), dt=0.5),
+        vary=("nu",),
+        progress=lambda step, loss, values: seen.append((step, loss, values["nu"])),
+    )
+    assert [s for s, _, _ in seen] == list(range(1, result.steps + 1))
+    np.testing.assert_array_equal([[loss, nu] for _, loss, nu in seen], result.history)

@@ -10,8 +10,10 @@ Data: 512 paths of the ball (ε = 0.7, ν = 1.3) drawn exactly from its Gaussian
 covariance of ``ball_two_time_covariances``), so that the closed form is the exact model and no simulation runs.
 """
 
+import io
 import json
 import re
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -353,3 +355,17 @@ def test_an_empty_dataset_is_refused_by_the_library():
     xr = pytest.importorskip("xarray")
     with pytest.raises(ValueError, match="ds holds no data variables; expected paths over path × time × name"):
         fit.Observations.from_xarray(xr.Dataset())
+
+
+def test_the_command_prints_each_step_on_a_terminal_only(monkeypatch):
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    monkeypatch.setattr("sys.stderr", io.StringIO())
+    assert runs_fit.terminal_progress() is None
+    monkeypatch.setattr("sys.stderr", Terminal())
+    show = runs_fit.terminal_progress()
+    assert show is not None
+    show(3, 29.29, {"eps": 0.697, "nu": 1.28})
+    assert sys.stderr.getvalue() == "fit step   3: chi2/2 = 29.29  eps = 0.697  nu = 1.28\n"

@@ -526,6 +526,7 @@ def estimate(
     optimizer: optax.GradientTransformation | None = None,
     max_steps: int = 100,
     gtol: float = 1e-4,
+    progress: Callable[[int, float, dict[str, float]], None] | None = None,
 ) -> FitResult:
     """Fit the parameters ``vary`` of ``system`` to ``observed`` statistics through ``model``.
 
@@ -545,6 +546,8 @@ def estimate(
         optimizer: any optax transformation (default ``optax.lbfgs()``).
         max_steps: the most optimizer steps.
         gtol: the gradient norm at which the fit stops.
+        progress: called on the host after each optimizer step as ``progress(step, loss, {name: value})``
+            (the values at which the loss was evaluated); the command line prints these on a terminal.
 
     Returns:
         a :class:`FitResult`: ``values``, their covariance ``cov`` and ``se``, ``chi2`` on ``dof`` degrees of
@@ -631,6 +634,8 @@ def estimate(
             new_phi, state, value, grad = _step(phi, state, problem, optimizer, reuse)
         loss = float(np.asarray(value))
         history.append([loss, *np.asarray(problem.theta(phi))])
+        if progress is not None:
+            progress(steps, loss, {n: float(v) for n, v in zip(vary, history[-1][1:])})
         if not np.isfinite(loss) or not np.all(np.isfinite(np.asarray(grad))):  # the programs leave it to the host
             raise FloatingPointError(
                 f"estimate: the loss is {loss} and its gradient {np.asarray(grad).tolist()} at "
@@ -689,6 +694,7 @@ def estimate(
                 optimizer=given_optimizer,
                 max_steps=max_steps,
                 gtol=gtol,
+                progress=progress,
             )
             history = np.concatenate([result.history, refit.history])  # both fits, in order
             return dataclasses.replace(refit, init=theta0, history=history, steps=result.steps + refit.steps)

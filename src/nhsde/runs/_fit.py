@@ -19,6 +19,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -118,7 +120,8 @@ def _fit(config: RunConfig) -> tuple[FitResult, xr.Dataset]:
         solver=d["solver"]["name"],
         t0=float(data["time"].values[0]),
     )
-    result = estimate(built.system, observed, model, vary=tuple(d["fit"]["vary"]), max_steps=d["fit"]["max_steps"])
+    vary, max_steps = tuple(d["fit"]["vary"]), d["fit"]["max_steps"]
+    result = estimate(built.system, observed, model, vary=vary, max_steps=max_steps, progress=terminal_progress())
     ds = xr.Dataset(
         {
             "estimate": (("parameter",), result.values),
@@ -186,6 +189,7 @@ def fit_data(
     seed: int = 0,
     t0: float = 0.0,
     max_steps: int = 100,
+    progress: Callable[[int, float, dict[str, float]], None] | None = None,
 ) -> tuple[FitResult, Observations]:
     """Fit the parameters ``vary`` of the scene ``scene`` (a name of :func:`~nhsde.scenes.get_scene` or a scene
     class) to the data file ``data``; returns the fit and the data.
@@ -194,7 +198,8 @@ def fit_data(
     ``jax.random.key(seed)`` (use a seed other than the data's), ``solver`` and step ``dt``; ``"moments"``
     integrates the normal-approximation moment equations with step ``dt`` (exact for linear systems).  ``dt``
     defaults to the largest step of at most 0.01 that divides the spacing of the observation times.
-    ``parameters`` are the start values (and the fixed values of the other parameters).
+    ``parameters`` are the start values (and the fixed values of the other parameters); ``progress`` is
+    :func:`~nhsde.fit.estimate`'s.
 
     Refused before any run: observation times before ``t0`` (outside the model's span), a span that steps of
     ``dt`` cross in more than :class:`~nhsde.FixedSteps`' step budget, and a complex initial state.
@@ -234,7 +239,19 @@ def fit_data(
         fitted = Simulated(y0, jax.random.key(seed), n_paths=n_paths, steps=step, solver=solver, t0=t0)
     else:
         fitted = MomentEquations(y0, dt=step, t0=t0)
-    return estimate(system, observed, fitted, vary=tuple(vary), max_steps=max_steps), observed
+    return estimate(system, observed, fitted, vary=tuple(vary), max_steps=max_steps, progress=progress), observed
+
+
+def terminal_progress() -> Callable[[int, float, dict[str, float]], None] | None:
+    """A fit's progress printer, one line per optimizer step on stderr, where stderr is a terminal (else None)."""
+    if not sys.stderr.isatty():
+        return None
+
+    def show(step: int, loss: float, values: dict[str, float]):
+        shown = "  ".join(f"{n} = {v:.6g}" for n, v in values.items())
+        print(f"fit step {step:3d}: chi2/2 = {loss:.6g}  {shown}", file=sys.stderr, flush=True)
+
+    return show
 
 
 def fit_data_flags(parser: argparse.ArgumentParser):
@@ -290,7 +307,12 @@ def fit_data_command(args) -> int:
     }
     scene = get_scene(args.scene, folder=Path.cwd())  # a MODULE:CLASS named on the command line: the current directory
     result, observed = fit_data(
-        args.data, scene, vary, parameters=parameters, **{k: v for k, v in options.items() if v is not None}
+        args.data,
+        scene,
+        vary,
+        parameters=parameters,
+        progress=terminal_progress(),
+        **{k: v for k, v in options.items() if v is not None},
     )
     if args.json:
         out: dict[str, Any] = {
