@@ -145,49 +145,72 @@ def _duration(seconds: float) -> str:
 
 
 def _plan(config, n_paths: int, derivatives: bool = False) -> str:
-    """``paths × steps`` of a run and, unless it is about as short as a pilot, roughly how long it takes:
-    a pilot of 64 paths over at most 100 steps, run twice (the first compiles), timed and scaled; the seconds of
-    the same pilot in an earlier process where the compilation cache folder keeps them (:data:`PILOTS`)."""
+    """``paths × steps`` of a run and, unless it is about as short as a pilot, roughly how long it takes, compiling
+    included: a pilot of one chunk's paths over at most 20 steps, run twice (the first compiles, the second is timed
+    and scaled to the run's chunks and steps).  The run's program compiles about as long as the pilot's, twice as
+    long with the derivatives (their tangents; 1.6–3× measured on the sleigh, by hand and from its spec).  The seconds
+    of the same pilot in an earlier process come from the compilation cache folder where it keeps them
+    (:data:`PILOTS`)."""
+    import jax
+
+    from .._brownian import BLOCK
+    from .._simulate import default_chunk_size
+
     s = config.data["solver"]
     steps = round((s["t1"] - s["t0"]) / s["dt"])
     text = f"{n_paths} paths × {steps} steps ({s['name']}, dt = {s['dt']:g})"
-    m = min(steps, 100)
-    if n_paths * steps <= 16 * 64 * m:
+    m = min(steps, 20)
+    chunk = min(BLOCK * -(-n_paths // BLOCK), default_chunk_size(jax.default_backend()))
+    if n_paths * steps <= 16 * 64 * 100:
         return text
-    key = _pilot_key(config, m)
-    seconds = _stored_pilot(key)
-    if seconds is None:
-        seconds = _timed_pilot(config, m)
-        _store_pilot(key, seconds)
-    seconds *= n_paths * steps / (64 * m) * (3 if derivatives else 1)
+    key = _pilot_key(config, chunk, m)
+    timed = _stored_pilot(key)
+    if timed is None:
+        timed = _timed_pilot(config, chunk, m)
+        _store_pilot(key, timed)
+    compiling, stepping = timed
+    factor = 3 if derivatives else 1
+    compiling *= 2 if derivatives else 1
+    seconds = compiling + stepping * factor * -(-n_paths // chunk) * steps / m
     return (
-        text + f", roughly {_duration(seconds)}{' with the derivatives' if derivatives else ''} "
-        f"(an estimate from a timed pilot of 64 paths × {m} steps)"
+        text + f", roughly {_duration(seconds)}{' with the derivatives' if derivatives else ''}, about "
+        f"{_duration(compiling)} of it compiling (an estimate from a timed pilot of {chunk} paths × {m} steps)"
     )
 
 
-def _pilot_key(config, m: int) -> str:
-    """What a pilot's time depends on: the run without its paths and statistics, its ``m`` steps, the JAX version
-    and the device."""
+def _pilot_key(config, chunk: int, m: int) -> str:
+    """What a pilot's time depends on: the run without its paths and statistics, the pilot's ``chunk`` paths and
+    ``m`` steps, the JAX version and the device."""
     import jax
 
     data = {k: v for k, v in config.data.items() if k not in ("paths", "statistics")}
-    described = [data, m, jax.__version__, jax.devices()[0].device_kind, jax.dtypes.canonicalize_dtype(np.float64).name]
+    described = [
+        data,
+        chunk,
+        m,
+        jax.__version__,
+        jax.devices()[0].device_kind,
+        jax.dtypes.canonicalize_dtype(np.float64).name,
+    ]
     return hashlib.sha256(json.dumps(described, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def _stored_pilot(key: str) -> float | None:
-    """The seconds an earlier process's pilot took (:data:`PILOTS`), or None (none, unreadable, or no cache)."""
+def _stored_pilot(key: str) -> tuple[float, float] | None:
+    """``(compiling, stepping)`` seconds of an earlier process's pilot (:data:`PILOTS`), or None (none, unreadable,
+    or no cache)."""
     if _cache_folder is None:
         return None
     try:
-        seconds = json.loads((_cache_folder / PILOTS).read_text()).get(key)
+        timed = json.loads((_cache_folder / PILOTS).read_text()).get(key)
     except (OSError, ValueError, AttributeError):
         return None
-    return float(seconds) if isinstance(seconds, (int, float)) and seconds > 0 else None
+    if not (isinstance(timed, list) and len(timed) == 2 and all(isinstance(t, (int, float)) for t in timed)):
+        return None
+    compiling, stepping = float(timed[0]), float(timed[1])
+    return (compiling, stepping) if compiling >= 0 and stepping > 0 else None
 
 
-def _store_pilot(key: str, seconds: float) -> None:
+def _store_pilot(key: str, timed: tuple[float, float]) -> None:
     """Keep the pilot's seconds for the next process (best effort: a folder that cannot be written is left)."""
     if _cache_folder is None:
         return
@@ -197,7 +220,7 @@ def _store_pilot(key: str, seconds: float) -> None:
         stored = stored if isinstance(stored, dict) else {}
     except (OSError, ValueError):
         stored = {}
-    stored[key] = seconds
+    stored[key] = list(timed)
     try:
         partial = path.with_name(f"{PILOTS}.{os.getpid()}")
         partial.write_text(json.dumps(stored))
@@ -206,8 +229,9 @@ def _store_pilot(key: str, seconds: float) -> None:
         pass
 
 
-def _timed_pilot(config, m: int) -> float:
-    """Seconds of a pilot of 64 paths over ``m`` steps, run twice (the first compiles), the second timed."""
+def _timed_pilot(config, chunk: int, m: int) -> tuple[float, float]:
+    """``(compiling, stepping)``: seconds of a pilot of ``chunk`` paths over ``m`` steps, run twice; the first call's
+    excess over the second is its compilation."""
     import jax
 
     from .._ensemble import Save
@@ -222,7 +246,7 @@ def _timed_pilot(config, m: int) -> float:
             built.system,
             built.y0,
             built.key,
-            n_paths=64,
+            n_paths=chunk,
             t0=s["t0"],
             t1=s["t0"] + m * s["dt"],
             dt=s["dt"],
@@ -233,8 +257,9 @@ def _timed_pilot(config, m: int) -> float:
         jax.block_until_ready(ens.mean)
         return time.perf_counter() - start
 
-    pilot()
-    return pilot()
+    first = pilot()
+    stepping = pilot()
+    return max(first - stepping, 0.0), stepping
 
 
 def _saved(out: Path) -> str:
