@@ -27,6 +27,10 @@ def test_blocked_step_loop_gives_bitwise_the_same_statistics(monkeypatch, steps_
         np.testing.assert_array_equal(a, b)
 
 
-def test_default_chunk_on_an_accelerator_holds_every_path():
-    assert simulate_module.default_chunk_size("cpu") == 8192
-    assert simulate_module.default_chunk_size("gpu") >= 2**20
+def test_the_default_chunk_is_each_devices_share_up_to_the_platforms_cap():
+    """One device: all paths up to 8192 (CPU) or 2²⁰ (accelerator); several: each device's share, so that no device
+    simulates padding beyond a block (32768 paths on 8 devices ran 65536 in chunks of 8192)."""
+    chunk = simulate_module.default_chunk_size
+    assert (chunk(100, 1, "cpu"), chunk(20000, 1, "cpu"), chunk(65536, 1, "gpu")) == (128, 8192, 65536)
+    assert chunk(2**24, 1, "gpu") == 2**20
+    assert (chunk(32768, 8, "cpu"), chunk(256, 8, "cpu"), chunk(2**21, 8, "gpu")) == (4096, 64, 2**18)

@@ -101,9 +101,9 @@ class Batching(eqx.Module):
     Statistics are bitwise the same for every choice: only memory and speed change.
 
     Arguments:
-        chunk_size: paths per chunk (a multiple of 64; default: all paths up to
-            8192 on a CPU, up to 2²⁰ on a GPU or TPU); memory scales with it, not
-            with ``n_paths``.
+        chunk_size: paths per chunk (a multiple of 64; default: each device's share
+            of the paths, up to 8192 on a CPU and 2²⁰ on a GPU or TPU); memory
+            scales with it, not with ``n_paths``.
         devices: the devices to shard chunks over (default: all of
             ``jax.devices()``); one chunk per device at a time, statistics bitwise the
             same as on one device.

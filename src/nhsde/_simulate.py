@@ -589,11 +589,13 @@ def step_block(platform: str) -> int:
     return 1 if platform == "cpu" else 32
 
 
-def default_chunk_size(platform: str) -> int:
-    """Paths per chunk when :class:`Batching` names none: 8192 on a CPU (a chunk's state stays in cache), 2²⁰ on
-    an accelerator, where a step of 8192 paths is bound by kernel launches, not by the paths (65536 paths in
-    chunks of 8192 ran 7.6× slower than one fused scan on an H200)."""
-    return 8192 if platform == "cpu" else 2**20
+def default_chunk_size(n_paths: int, n_devices: int, platform: str) -> int:
+    """Paths per chunk when :class:`Batching` names none: each device's even share of the paths (whole blocks), at
+    most 8192 on a CPU (a chunk's state stays in cache) and 2²⁰ on an accelerator, where a step of 8192 paths is
+    bound by kernel launches, not by the paths (65536 paths in chunks of 8192 ran 7.6× slower than one fused scan
+    on an H200)."""
+    share = BLOCK * math.ceil(n_paths / (BLOCK * n_devices))
+    return min(share, 8192 if platform == "cpu" else 2**20)
 
 
 def _check_y0(system, y0, n_paths):
@@ -739,7 +741,7 @@ def simulate_run(
     platform = devices[0].platform if devices else jax.default_backend()
     chunk_size = batching.chunk_size
     if chunk_size is None:
-        chunk_size = default_chunk_size(platform)
+        chunk_size = default_chunk_size(n_paths, len(devices), platform)
     # never more than the paths need: padding is simulated work that no statistic uses
     chunk_size = min(check_number("chunk_size", chunk_size, integer=True), BLOCK * math.ceil(n_paths / BLOCK))
     check_ranges(cast_floats(system.params, y0.dtype))  # a radius of 1e-50 is 0 in float32

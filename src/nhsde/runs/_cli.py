@@ -153,14 +153,13 @@ def _plan(config, n_paths: int, derivatives: bool = False) -> str:
     (:data:`PILOTS`)."""
     import jax
 
-    from .._brownian import BLOCK
     from .._simulate import default_chunk_size
 
     s = config.data["solver"]
     steps = round((s["t1"] - s["t0"]) / s["dt"])
     text = f"{n_paths} paths × {steps} steps ({s['name']}, dt = {s['dt']:g})"
     m = min(steps, 20)
-    chunk = min(BLOCK * -(-n_paths // BLOCK), default_chunk_size(jax.default_backend()))
+    chunk = default_chunk_size(n_paths, len(jax.devices()), jax.default_backend())
     if n_paths * steps <= 16 * 64 * 100:
         return text
     key = _pilot_key(config, chunk, m)
