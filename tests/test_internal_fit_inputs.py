@@ -130,7 +130,7 @@ def test_cli_reads_a_file_with_its_deterministic_start_and_prints_the_note(paths
     ``estimate`` does; test_fit_data fits through the command) and prints the note, in the table and in JSON."""
     seen = []
 
-    def stand_in(system, observed, model, *, vary, max_steps):
+    def stand_in(system, observed, model, *, vary, max_steps, progress):
         seen.append((observed, model))
         cov = np.diag([0.01, 0.04])
         return fit.FitResult(
