@@ -63,7 +63,7 @@ def test_the_pilot_is_timed_once_per_cache_folder(tmp_path, monkeypatch, capsys)
     """The command's estimate comes from a timed pilot; its seconds are kept in the cache folder, so the same run
     again prints the same estimate without simulating the pilot (whose programs a warm process would load)."""
     monkeypatch.setenv(VARIABLE, str(tmp_path))
-    args = ["simulate", "ball-on-vibrating-plane", "--paths", "4096", "--t1", "1", "--dt", "0.05", "--save-points", "2"]
+    args = ["simulate", "ball-on-vibrating-plane", "--paths", "8192", "--t1", "5", "--dt", "0.05", "--save-points", "2"]
     timed = []
     real = _cli._timed_pilot
     monkeypatch.setattr(_cli, "_timed_pilot", lambda *a: timed.append(a) or real(*a))
@@ -72,7 +72,7 @@ def test_the_pilot_is_timed_once_per_cache_folder(tmp_path, monkeypatch, capsys)
     assert len(timed) == 1 and "roughly" in first and (tmp_path / _cli.PILOTS).is_file()
     assert main(args) == 0
     assert capsys.readouterr().out.splitlines()[0] == first and len(timed) == 1
-    assert main([*args[:3], "8192", *args[4:]]) == 0  # the same pilot: twice the paths, twice the estimate
+    assert main([*args[:3], "16384", *args[4:]]) == 0  # the same pilot (one chunk of 8192): twice the paths
     assert len(timed) == 1
     (tmp_path / _cli.PILOTS).write_text("{not json")  # a damaged file is measured again and rewritten
     assert main(args) == 0 and len(timed) == 2

@@ -390,12 +390,13 @@ def test_progress_is_shown_by_default_on_a_terminal(tmp_path, monkeypatch):
 
 def test_the_command_says_what_it_will_run_and_roughly_how_long(runs, tmp_path, capsys):
     cfg = tmp_path / "run.toml"
-    cfg.write_text(BASE_TOML.replace("n = 300", "n = 4096").replace("chunk = 64", "chunk = 4096"))
+    long_run = BASE_TOML.replace("n = 300", "n = 4096").replace("chunk = 64", "chunk = 4096")
+    cfg.write_text(long_run.replace("t1 = 1.0", "t1 = 5.0"))
     out = tmp_path / "result.txt"
     assert main(["simulate", "--config", str(cfg), "--no-progress", "--out", str(out)]) == 0
     text = capsys.readouterr().out
-    assert f"{out}: 4096 paths × 20 steps (euler, dt = 0.05), roughly " in text
-    assert "(an estimate from a timed pilot of 64 paths × 20 steps) in pieces of 4096" in text
+    assert f"{out}: 4096 paths × 100 steps (euler, dt = 0.05), roughly " in text
+    assert "of it compiling (an estimate from a timed pilot of 4096 paths × 20 steps) in pieces of 4096" in text
     assert f"saved {out} (netCDF, although the name does not end in .nc)" in text
     assert sorted(p.name for p in tmp_path.iterdir()) == ["result.txt", "run.toml"]
 

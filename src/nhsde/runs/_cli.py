@@ -159,8 +159,10 @@ def _plan(config, n_paths: int, derivatives: bool = False) -> str:
     steps = round((s["t1"] - s["t0"]) / s["dt"])
     text = f"{n_paths} paths × {steps} steps ({s['name']}, dt = {s['dt']:g})"
     m = min(steps, 20)
-    chunk = default_chunk_size(n_paths, len(jax.devices()), jax.default_backend())
-    if n_paths * steps <= 16 * 64 * 100:
+    piece = min(n_paths, config.data["paths"]["chunk"])  # a run file's piece: one simulate call
+    chunk = default_chunk_size(piece, len(jax.devices()), jax.default_backend())
+    # a small run ends within seconds, and for a run of a few pilots the pilot's two calls cost half the run
+    if n_paths * steps <= max(16 * 64 * 100, 4 * chunk * m):
         return text
     key = _pilot_key(config, chunk, m)
     timed = _stored_pilot(key)
