@@ -141,6 +141,24 @@ def test_summary_without_correlations_warns_and_inflates(data_sets):
     assert exact.inflation == 1.0 and exact.correlations == "model"
 
 
+def test_singular_model_correlations_fall_back_to_independent_statistics_and_say_why(data_sets):
+    """A model whose correlations at the estimate are singular (here its two-time covariance is 0: every statistic
+    held constant) is not used to whiten the data (a Cholesky error before); the fit keeps independent statistics,
+    inflated, and says why.  A singular observed covariance is refused by name."""
+    ts, paths = data_sets
+    observed = fit.Observations.from_paths(ts, paths[:N_PATHS], NAMES)
+    bare = fit.Observations.from_statistics(ts, NAMES, observed.mean, observed.cov, *summary_of(observed), N_PATHS)
+    start = BallOnVibratingPlane(eps=0.5, nu=1.0).build()
+    singular = fit.ClosedForm(ball_closed_form, cross=lambda p, ts: 0.0 * ball_cross(p, ts))
+    with pytest.warns(UserWarning, match=r"correlations at the estimate are singular .* inflated by chi2/dof"):
+        result = fit.estimate(start, bare, singular)
+    plain = fit.estimate(start, bare, fit.ClosedForm(ball_closed_form))
+    assert result.correlations == "unknown" and np.array_equal(result.values, plain.values)
+    dependent = np.ones_like(observed.covariance)
+    with pytest.raises(ValueError, match="observed: the covariance of the observed statistics is not positive"):
+        fit.estimate(start, observed.with_correlations(dependent, "given"), fit.ClosedForm(ball_closed_form))
+
+
 def test_a_summary_dataset_carries_its_covariance(data_sets):
     """from_xarray reads ``covariance`` over statistic × statistic2 beside the summary's moments."""
     xr = pytest.importorskip("xarray")

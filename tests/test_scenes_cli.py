@@ -159,3 +159,17 @@ def test_cli_runs_a_noiseless_scene_and_reports_the_missing_nu_derivative(capsys
     assert np.all(np.isnan(data["d_mean_d_nu"])) and np.all(np.isfinite(data["d_mean_d_eps"]))
     x = data["mean"][-1, 0]
     assert abs(x - 0.5 * 3.0) < 1e-9 * 1.5, x  # default radius 1, spin 3 rad/s
+
+
+def test_cli_differentiates_in_the_scene_s_own_noise_intensity(capsys, tmp_path):
+    """A scene in a heat bath has no ``nu``: its noise intensity is ``kT`` (``Scene.intensities``).  The command
+    reports and writes the derivatives in ``eps`` and ``kT`` (it raised AttributeError on ``params.nu`` before)."""
+    out = tmp_path / "bath.nc"
+    argv = ["simulate", "chaplygin-sleigh-in-bath", "--paths", "64", "--t1", "0.2", "--dt", "0.05", "--save-points"]
+    assert main([*argv, "2", "--no-progress", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "d/d eps" in text and "d/d kT" in text and "d/d nu" not in text
+    data = load_run(out)
+    assert {"d_cov_d_eps", "d_cov_d_kT", "d_mean_d_kT_se"} <= set(data.data_vars) and "d_cov_d_nu" not in data
+    assert np.all(np.isfinite(data["d_cov_d_kT"][-1]))
+    assert float(data["d_cov_d_kT"][-1, 3, 3]) > 0  # Var v grows with kT

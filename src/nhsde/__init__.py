@@ -30,9 +30,11 @@ from ._ensemble import (
     StationaryVarianceWarning as StationaryVarianceWarning,
 )
 from ._options import (
+    AbstractSteps as AbstractSteps,
     AdaptiveSteps as AdaptiveSteps,
     Batching as Batching,
     FixedSteps as FixedSteps,
+    RunOptions as RunOptions,
 )
 from ._params import (
     AbstractParameters as AbstractParameters,

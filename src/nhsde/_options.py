@@ -150,28 +150,37 @@ def _span_end(name: str):
 
 
 class RunOptions(eqx.Module):
-    """What every solve of one question shares, checked once: the span ``(t0, t1)``, the steps, the solver, what is
-    saved and how paths are batched.  :func:`~nhsde.simulate` and every estimator build it from their keywords
-    (:func:`run_options`: the one rule for ``dt`` and ``steps``) and pass it inward; the estimators' levels, pilots
-    and coupled solves are the same options at other steps (:meth:`at`) or solvers.
+    """A run's options, checked once: the span ``(t0, t1)``, the steps, the solver, what is saved and how paths are
+    batched.  Pass it whole as ``run=`` to :func:`~nhsde.simulate`, :func:`~nhsde.sweep`,
+    :func:`~nhsde.statistics.moment_sensitivities` and every estimator; their flat keywords (``t1=``, ``dt=``,
+    ``solver=``, …) are sugar that builds it.  The estimators' levels, pilots and coupled solves are the same options
+    at other steps (:meth:`at`) or solvers.
+
+    Arguments:
+        t1: the final time.
+        steps: :class:`FixedSteps` or :class:`AdaptiveSteps` (estimators: fixed steps only).
+        t0: the initial time (default 0).
+        solver: a diffrax SDE solver or an alias of ``nhsde.SOLVERS`` (default ``'euler'``).
+        save: what is kept (:class:`~nhsde.Save`; default: every state component at ≤ 11 times for ``simulate``,
+            the statistic's components for an estimator).
+        batching: :class:`Batching` (default: its defaults).
 
     Examples:
         >>> import nhsde
-        >>> from nhsde._options import RunOptions
-        >>> run = RunOptions(t0=0.0, t1=1.0, steps=nhsde.FixedSteps(0.25), solver="euler")
-        >>> run.n_steps, run.at(0.125).n_steps
-        (4, 8)
-        >>> RunOptions(t0=0.0, t1=1.0, steps=nhsde.FixedSteps(0.3), solver="euler")
+        >>> run = nhsde.RunOptions(t1=1.0, steps=nhsde.FixedSteps(0.25))
+        >>> run.n_steps, run.at(0.125).n_steps, run.solver
+        (4, 8, 'euler')
+        >>> nhsde.RunOptions(t1=1.0, steps=nhsde.FixedSteps(0.3))
         Traceback (most recent call last):
         ...
         ValueError: dt=0.3 must divide t1 − t0 = 1.0 into a whole number of steps.
     """
 
-    t0: float = eqx.field(converter=_span_end("t0"))
     t1: float = eqx.field(converter=_span_end("t1"))
     steps: AbstractSteps
-    solver: str | dfx.AbstractSolver
-    save: Save | None = None  # resolved by the caller: simulate's default keeps every component, an estimator's paths
+    t0: float = eqx.field(default=0.0, converter=_span_end("t0"))
+    solver: str | dfx.AbstractSolver = "euler"
+    save: Save | None = None
     batching: Batching = eqx.field(default=None, converter=lambda b: Batching() if b is None else b)
 
     def __check_init__(self):
@@ -216,33 +225,54 @@ class RunOptions(eqx.Module):
         return dataclasses.replace(self, steps=steps)
 
 
+_FLAT = ("t0", "t1", "dt", "steps", "solver", "save", "batching")
+
+
 def run_options(
     who: str,
+    run: "RunOptions | None" = None,
     *,
-    t0,
-    t1,
-    dt,
-    steps,
-    solver,
+    t0=None,
+    t1=None,
+    dt=None,
+    steps=None,
+    solver=None,
     save=None,
     batching=None,
     adaptive: bool = False,
     brownian_dt: bool = False,
 ) -> RunOptions:
-    """:class:`RunOptions` from the keywords of ``who`` (:func:`~nhsde.simulate` or an estimator), with the one rule
-    for the step: ``dt=h`` or ``steps=…``, not both.  Estimators (``adaptive=False``) take fixed steps only (they
+    """The :class:`RunOptions` of a call of ``who`` (:func:`~nhsde.simulate` or an estimator): ``run`` as given, or
+    built from the flat keywords (plain sugar: ``t0 = 0``, ``solver = 'euler'``, and the one rule for the step:
+    ``dt=h`` or ``steps=…``, not both), never both.  Estimators (``adaptive=False``) take fixed steps only (they
     compare and couple solves on fixed grids), and a ``brownian_dt`` only where ``who`` does not set its own."""
-    if steps is None:
-        if dt is None:
-            allowed = "steps=nhsde.FixedSteps(h) / nhsde.AdaptiveSteps(h)" if adaptive else "steps=nhsde.FixedSteps(h)"
-            raise TypeError(f"{who} needs a step: dt=h or {allowed}.")
-        if isinstance(dt, AbstractSteps):
-            raise TypeError(f"dt={dt!r}; give a number, dt=h, or the steps as steps=nhsde.FixedSteps(h).")
-        steps = FixedSteps(check_number("dt", dt, positive=True))
-    elif dt is not None:
-        raise TypeError(f"dt={dt} and steps={steps!r}: give the step once.")
-    elif not isinstance(steps, AbstractSteps):
-        raise TypeError(f"steps={steps!r}; expected nhsde.FixedSteps(h), or the step as a number, dt=h.")
+    flat = dict(t0=t0, t1=t1, dt=dt, steps=steps, solver=solver, save=save, batching=batching)
+    if run is not None:
+        if not isinstance(run, RunOptions):
+            raise TypeError(f"run={run!r}; expected nhsde.RunOptions(t0=…, t1=…, steps=…, solver=…).")
+        given = [name for name in _FLAT if flat[name] is not None]
+        if given:
+            raise TypeError(
+                f"{who}: run= and {', '.join(f'{n}=' for n in given)} both given; give the run's options once, "
+                f"in run= (e.g. dataclasses.replace(run, {given[0]}=…)) or as keywords."
+            )
+        steps = run.steps
+    else:
+        if t1 is None:
+            raise TypeError(f"{who} needs t1 (or run=nhsde.RunOptions(...)).")
+        if steps is None:
+            if dt is None:
+                allowed = "steps=nhsde.FixedSteps(h)" + (" / nhsde.AdaptiveSteps(h)" if adaptive else "")
+                raise TypeError(f"{who} needs a step: dt=h or {allowed}.")
+            if isinstance(dt, AbstractSteps):
+                raise TypeError(f"dt={dt!r}; give a number, dt=h, or the steps as steps=nhsde.FixedSteps(h).")
+            steps = FixedSteps(check_number("dt", dt, positive=True))
+        elif dt is not None:
+            raise TypeError(f"dt={dt} and steps={steps!r}: give the step once.")
+        elif not isinstance(steps, AbstractSteps):
+            raise TypeError(f"steps={steps!r}; expected nhsde.FixedSteps(h), or the step as a number, dt=h.")
+        solver = "euler" if solver is None else solver
+        run = RunOptions(t0=0.0 if t0 is None else t0, t1=t1, steps=steps, solver=solver, save=save, batching=batching)
     if not adaptive:
         if not isinstance(steps, FixedSteps):
             raise ValueError(
@@ -250,4 +280,4 @@ def run_options(
             )
         if steps.brownian_dt is not None and not brownian_dt:
             raise ValueError(f"steps={steps!r}: {who} sets the Brownian path's step itself; leave brownian_dt None.")
-    return RunOptions(t0=t0, t1=t1, steps=steps, solver=solver, save=save, batching=batching)
+    return run

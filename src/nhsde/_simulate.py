@@ -621,13 +621,14 @@ def simulate(
     key,
     *,
     n_paths: int,
-    t1: float,
+    t1: float | None = None,
     dt: float | None = None,
-    t0: float = 0.0,
-    solver: str | dfx.AbstractSolver = "euler",
+    t0: float | None = None,
+    solver: str | dfx.AbstractSolver | None = None,
     steps: AbstractSteps | None = None,
     save: Save | None = None,
     batching: Batching | None = None,
+    run: RunOptions | None = None,
     on_failure: Literal["raise", "exclude"] = "raise",
     progress_meter: dfx.AbstractProgressMeter | None = None,
     first_path: int = 0,
@@ -638,14 +639,16 @@ def simulate(
         system: the SDE (a scene's ``build()``).
         y0: ``(d,)`` for a common initial state or ``(n_paths, d)``.
         key: a JAX random key; the same key gives bitwise the same result, whatever the batching.
-        n_paths, t0, t1: paths and time interval.
+        n_paths: the number of paths.
+        t0, t1: the time interval (``t0`` default 0).
         dt: fixed step, shorthand for ``steps=FixedSteps(dt)``.
         solver: a diffrax SDE solver object (``diffrax.ShARK()``, …) or an alias of
-            ``nhsde.SOLVERS``; a system written in the other calculus is converted first.
+            ``nhsde.SOLVERS`` (default ``'euler'``); a system written in the other calculus is converted first.
         steps: :class:`~nhsde.FixedSteps` (with ``brownian_dt``, a step budget) or
             :class:`~nhsde.AdaptiveSteps` (tolerances).
         save: what to keep (:class:`~nhsde.Save`); default every state component at ≤ 11 times.
         batching: chunk size, devices, reverse-mode checkpointing (:class:`~nhsde.Batching`).
+        run: all of the above at once, :class:`~nhsde.RunOptions` (then none of ``t0`` … ``batching``).
         on_failure: ``'raise'`` raises :class:`~nhsde.SimulationError` (under a JAX
             transformation, a run-time error) if any path fails; ``'exclude'``
             leaves failed paths out of the statistics and marks them in ``Ensemble.failed``.
@@ -673,7 +676,7 @@ def simulate(
         True
     """
     run = run_options(
-        "simulate", t0=t0, t1=t1, dt=dt, steps=steps, solver=solver, save=save, batching=batching, adaptive=True
+        "simulate", run, t0=t0, t1=t1, dt=dt, steps=steps, solver=solver, save=save, batching=batching, adaptive=True
     )
     return simulate_run(
         system,

@@ -26,6 +26,7 @@ import xarray as xr
 
 from ._ensemble import SimulationError
 from ._misc import check_key, is_concrete
+from ._options import RunOptions, run_options
 from ._simulate import MIN_PATHS, simulate
 from ._system import StochasticSystem
 from .scenes import AbstractScene
@@ -81,15 +82,16 @@ def sweep(
     *,
     key,
     n_paths: int,
-    t1: float,
+    t1: float | None = None,
     statistic=None,
     wrt: Sequence[str] | None = None,
     y0=None,
     dt: float | None = None,
-    t0: float = 0.0,
-    solver: Any = "euler",
+    t0: float | None = None,
+    solver: Any = None,
     steps=None,
     save=None,
+    run: RunOptions | None = None,
     batch: int | None = None,
     on_failure: str = "raise",
     on_batch: Callable[[int, int], None] | None = None,
@@ -101,7 +103,8 @@ def sweep(
             :class:`~nhsde.StochasticSystem` (then ``y0`` is needed).
         grid: parameter name → values, e.g. ``{"eps": [0.5, 1, 2], "nu": [0.5, 1]}``: the grid is their
             Cartesian product, a dimension of the result per name, in this order.
-        key, n_paths, t0, t1, dt, solver, steps, save: as for :func:`~nhsde.simulate`, the same at every point.
+        key, n_paths, t0, t1, dt, solver, steps, save, run: as for :func:`~nhsde.simulate`, the same at every
+            point.
         statistic: ``Mean(a)`` or ``Covariance(a, b)`` (or ``('mean', a)``, ``('cov', a, b)``) at ``t1`` (as for
             :func:`~nhsde.statistics.to_accuracy`): adds ``value``, ``value_se`` and their derivatives over the grid.
         wrt: parameters to differentiate in (default the grid's; ``()`` for none), pathwise, with standard errors.
@@ -133,6 +136,7 @@ def sweep(
         >>> ds["value"].dims, ds["d_value_d_eps"].shape
         (('eps',), (3,))
     """
+    run = run_options("sweep", run, t0=t0, t1=t1, dt=dt, steps=steps, solver=solver, save=save, adaptive=True)
     if isinstance(scene, AbstractScene):
         system = scene.build()
         y0 = scene.initial_state() if y0 is None else y0
@@ -161,7 +165,7 @@ def sweep(
             raise ValueError(f"grid[{name!r}]={grid[name]!r}; expected a non-empty list of finite numbers.")
         axes.append(values)
     wrt = names if wrt is None else (() if not wrt else check_wrt(system, wrt))
-    options: dict[str, Any] = dict(n_paths=n_paths, t1=t1, dt=dt, t0=t0, solver=solver, steps=steps, save=save)
+    options: dict[str, Any] = dict(n_paths=n_paths, run=run)
     points = np.array(list(itertools.product(*axes)))  # (G, g), the last name fastest
 
     # every point checked as simulate checks it, before anything runs: the errors and warnings name the point
@@ -255,8 +259,8 @@ def sweep(
         "wrt": json.dumps(list(wrt)),
         "parameters": json.dumps({k: float(v) for k, v in fixed.items() if np.ndim(v) == 0 and k not in names}),
         "n_paths": int(n_paths),
-        "t0": float(t0),
-        "t1": float(t1),
+        "t0": float(run.t0),
+        "t1": float(run.t1),
         "key_data": np.asarray(jax.random.key_data(check_key(key))).astype(np.int64).ravel().tolist(),
     }
     coords = {name: values for name, values in zip(names, axes)}

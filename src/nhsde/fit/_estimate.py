@@ -516,6 +516,16 @@ def _vary_bounds(params, vary):
     return tuple(lower)
 
 
+def _cholesky(cov: np.ndarray) -> np.ndarray | None:
+    """The lower Cholesky factor of ``cov``, or ``None`` where it is not (numerically) positive definite."""
+    if not np.all(np.isfinite(cov)):
+        return None
+    try:
+        return np.linalg.cholesky(cov)
+    except np.linalg.LinAlgError:
+        return None
+
+
 def estimate(
     system: StochasticSystem,
     observed: Observations,
@@ -606,7 +616,13 @@ def estimate(
     both = np.ix_(used, used)
     cov_obs = np.asarray(observed.covariance, np.float64)[both]
     observed_s = observed.statistics()[used]
-    whiten = np.linalg.inv(np.linalg.cholesky(cov_obs))
+    factor = _cholesky(cov_obs)
+    if factor is None:
+        raise ValueError(
+            "observed: the covariance of the observed statistics is not positive definite (statistics that are "
+            "linear combinations of others, or non-finite entries); leave out the dependent statistics."
+        )
+    whiten = np.linalg.inv(factor)
     problem = _Problem(
         system=system,
         model=model,
@@ -683,6 +699,13 @@ def estimate(
     )
     if observed.correlations == "unknown":
         sigma = model.statistics_covariance(problem.system_at(theta), problem.ts, observed.names, observed.n_paths)
+        why = f"the model ({type(model).__name__}) gives none"
+        if sigma is not None and _cholesky(np.asarray(sigma, np.float64)[both]) is None:
+            why = (
+                f"the model's ({type(model).__name__}) correlations at the estimate are singular (a statistic it "
+                "holds constant there, or fewer model paths than statistics), so they are not used"
+            )
+            sigma = None
         if sigma is not None:  # the model's correlations at θ̂, the data's own errors: fit again from θ̂
             again = observed.with_correlations(sigma, "model")
             refit = estimate(
@@ -700,8 +723,8 @@ def estimate(
             return dataclasses.replace(refit, init=theta0, history=history, steps=result.steps + refit.steps)
         inflation = max(1.0, chi2 / result.dof) if result.dof > 0 else 1.0
         warnings.warn(
-            f"estimate: the observed statistics are a summary without correlations across times, and the model "
-            f"({type(model).__name__}) gives none; the errors assume independent statistics, inflated by "
+            f"estimate: the observed statistics are a summary without correlations across times, and {why}; the "
+            "errors assume independent statistics, inflated by "
             f"chi2/dof = {inflation:.3g}, and are too small where the statistics are positively correlated (a "
             "coordinate at several times): fit the paths, pass from_statistics(covariance=...), or use a model that "
             "gives them (Simulated, ClosedForm(cross=...)).",

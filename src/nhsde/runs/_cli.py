@@ -2,8 +2,8 @@
 
 Both ``simulate`` modes write the same netCDF run file (``format = "nhsde-run"``,
 see :func:`~nhsde.runs.run`); ``nhsde simulate SCENE --out FILE`` adds the
-forward-mode derivatives ``d_mean_d_eps``, ``d_mean_d_nu``, ``d_cov_d_eps``,
-``d_cov_d_nu`` over ``time × name`` (``× name2``).  Before it simulates, the
+forward-mode derivatives ``d_mean_d_Q`` and ``d_cov_d_Q`` over ``time × name`` (``× name2``) for ``Q`` the
+friction ``eps`` and the scene's noise intensities (``nu``; ``kT`` in a bath).  Before it simulates, the
 command prints ``paths × steps`` and, for a run long enough, a rough time from
 a timed pilot (kept in the compilation cache folder: the same run again prints the
 same estimate without simulating the pilot).  Bad input (a run file, an option, an output path) ends it with
@@ -350,8 +350,7 @@ def _run_accuracy(config, built, out: Path | None = None) -> int:
     target = f"rmse {a['rmse']:g}" if a["rmse"] is not None else f"relative rmse {a['relative_rmse']:g}"
     label = f"m[{statistic[1]}]" if statistic[0] == "mean" else f"K[{statistic[1]},{statistic[2]}]"
     params = config.parameters()
-    # at ν = 0 paths scale like √ν: the ν-derivative does not exist (as in the plain simulate path)
-    wrt = ("eps", "nu") if float(built.system.params.nu) > 0 else ("eps",)
+    wrt = _derivative_parameters(config, built.system.params)[1]
     print(f"scene {d['scene']}: " + ", ".join(f"{k}={v:g}" for k, v in params.items()))
     print(
         f"{label} at t = {s['t1']:g} to {target}: pilots from the coarsest step dt = {s['dt']:g}, "
@@ -479,7 +478,14 @@ def _cmd_accuracy_scene(args) -> int:
     return _run_accuracy(config, config.build(), Path(args.out) if args.out else None)
 
 
-_PARAMS = ("eps", "nu")
+def _derivative_parameters(config, params) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """``(reported, differentiated)``: a scene run reports derivatives in ``eps`` and in the scene's noise
+    intensities (``Scene.intensities``: ``nu``, or ``kT`` in a bath); an intensity at 0 is not differentiated (paths
+    scale like its square root there: the derivative does not exist, reported as nan)."""
+    reported = ("eps", *config.scene_class.intensities)
+    return reported, tuple(q for q in reported if q == "eps" or float(getattr(params, q)) > 0)
+
+
 _SENSITIVITY_BYTES = 4 * 2**30
 
 
@@ -534,8 +540,7 @@ def _cmd_simulate_scene(args) -> int:
     d = config.data
 
     p = jax.tree.map(np.asarray, built.system.params)  # printed on the host, not one program per operation
-    # at ν = 0 paths scale like √ν: the ν-derivative does not exist and is reported as nan
-    wrt = ("eps", "nu") if float(p.nu) > 0 else ("eps",)
+    reported, wrt = _derivative_parameters(config, p)
     _check_sensitivity_memory(args, len(built.names), len(wrt))
     out = Path(args.out) if args.out else None
     with claim(out, config) if out else contextlib.nullcontext():
@@ -555,9 +560,9 @@ def _cmd_simulate_scene(args) -> int:
         )
         ens = sens.ensemble
 
-        def by_parameter(field):  # (eps, nu), nan where not differentiated
+        def by_parameter(field):  # per reported parameter, nan where not differentiated
             values = np.asarray(getattr(sens, field))
-            return tuple(values[wrt.index(q)] if q in wrt else np.full_like(values[0], np.nan) for q in _PARAMS)
+            return tuple(values[wrt.index(q)] if q in wrt else np.full_like(values[0], np.nan) for q in reported)
 
         d_mean, d_cov, d_mean_se, d_cov_se = map(by_parameter, ("d_mean", "d_cov", "d_mean_se", "d_cov_se"))
         pieces = Pieces()
@@ -565,7 +570,7 @@ def _cmd_simulate_scene(args) -> int:
         if out:
             tn, tnn = ("time", "name"), ("time", "name", "name2")
             derivatives = {}
-            for a, q in enumerate(_PARAMS):
+            for a, q in enumerate(reported):
                 for stat, dims, value, se in (("mean", tn, d_mean, d_mean_se), ("cov", tnn, d_cov, d_cov_se)):
                     long_name = f"pathwise (forward-mode) derivative of {stat} in {q}"
                     derivatives[f"d_{stat}_d_{q}"] = (dims, np.asarray(value[a]), {"long_name": long_name})
@@ -579,25 +584,22 @@ def _cmd_simulate_scene(args) -> int:
         f"{d['precision']}; failed paths: {sum(pieces.n_failed)}"
     )
     names, roles, last = built.names, built.roles, -1
-    print(
-        f"\nat t = {args.t1:g}  (value ± standard error; derivatives pathwise, by forward mode"
-        + ("" if len(wrt) == 2 else "; d/d nu is nan: it does not exist at nu = 0")
-        + ")"
-    )
-    print(f"{'quantity':<22}{'value':>26}{'d/d eps':>26}{'d/d nu':>26}")
+    absent = "".join(f"; d/d {q} is nan: it does not exist at {q} = 0" for q in reported if q not in wrt)
+    print(f"\nat t = {args.t1:g}  (value ± standard error; derivatives pathwise, by forward mode{absent})")
+    print(f"{'quantity':<22}{'value':>26}" + "".join(f"{f'd/d {q}':>26}" for q in reported))
     # the run file's statistics (float64, from the moment sums), written with --out or not
     mean, cov, mean_se, cov_se = (np.asarray(a, np.float64)[last] for a in pieces.total().statistics())
     for i, n in enumerate(names):
         label = f"m[{n}]" + (" (systematic drift)" if roles[i] == "dependent_coordinate" else "")
         print(
             f"{label:<22}{_fmt(mean[i], mean_se[i]):>26}"
-            + "".join(f"{_fmt(d_mean[a][last, i], d_mean_se[a][last, i]):>26}" for a in range(2))
+            + "".join(f"{_fmt(d_mean[a][last, i], d_mean_se[a][last, i]):>26}" for a in range(len(reported)))
         )
     for i, a in enumerate(names):
         for j, b in enumerate(names[: i + 1]):
             print(
                 f"{f'K[{a},{b}]':<22}{_fmt(cov[i, j], cov_se[i, j]):>26}"
-                + "".join(f"{_fmt(d_cov[q][last, i, j], d_cov_se[q][last, i, j]):>26}" for q in range(2))
+                + "".join(f"{_fmt(d_cov[q][last, i, j], d_cov_se[q][last, i, j]):>26}" for q in range(len(reported)))
             )
     if "dependent_coordinate" in roles and len(ens.ts) >= 3:
         _print_effective_diffusion(args.scene, ens, p)

@@ -13,8 +13,8 @@ SHA-256 of the package's sources (``source``), for a scene of the user's
 (``MODULE:CLASS`` or installed) the SHA-256 of its module's source
 (``scene_source``), the git revision (information only) and a ``checksum``
 (SHA-256 of the data variables, the coordinates and the other attributes).
-``nhsde simulate SCENE`` adds ``d_mean_d_eps``, ``d_mean_d_nu``,
-``d_cov_d_eps``, ``d_cov_d_nu``.
+``nhsde simulate SCENE`` adds ``d_mean_d_Q`` and ``d_cov_d_Q`` for ``Q`` the
+friction ``eps`` and the scene's noise intensities (``nu``; ``kT`` in a bath).
 
 Every file is serialised in memory, written to ``PATH.partial`` (created
 afresh: a link there is replaced, never followed), synced and renamed to

@@ -42,7 +42,6 @@ applies to the value, the derivatives come from the same paths).
 
 from __future__ import annotations
 
-import contextvars
 import dataclasses
 import math
 from collections.abc import Sequence
@@ -55,7 +54,7 @@ import numpy as np
 from .._brownian import BLOCK
 from .._ensemble import Save, SimulationError
 from .._misc import check_key, check_number, check_span, fold_key, is_concrete
-from .._options import AbstractSteps, Batching, run_options
+from .._options import AbstractSteps, Batching, RunOptions, run_options
 from .._simulate import stable_step
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
@@ -93,9 +92,6 @@ MAX_SE_OVER_TARGET = 2.0
 returned: its paths went far beyond the pilot's (on Chaplygin's ball at h = 1/4 the linearised control reached 1e17
 × the target in 3 of 20 keys, finite all the way); the pilot's variances from 1024 samples are within a few per cent
 where the tails are light."""
-
-_OWN_STEP = contextvars.ContextVar("nhsde_to_accuracy_own_step", default=False)
-"""Set for a retry from half the default coarsest step: that step is still ``to_accuracy``'s own to halve."""
 
 
 # --- the estimators ---------------------------------------------------------------------------------------------
@@ -206,11 +202,11 @@ def to_accuracy(
     y0,
     key,
     *,
-    t1: float,
     statistic: AbstractStatistic | tuple,
+    t1: float | None = None,
     rmse: float | None = None,
     relative_rmse: float | None = None,
-    t0: float = 0.0,
+    t0: float | None = None,
     dt: float | None = None,
     steps: AbstractSteps | None = None,
     solver=None,
@@ -224,11 +220,13 @@ def to_accuracy(
     estimators: Sequence[AbstractEstimator] | None = None,
     explore: bool = False,
     batching: Batching | None = None,
+    run: RunOptions | None = None,
     wrt: Sequence[str] | None = None,
 ) -> AccuracyResult:
     """``statistic`` at ``t1`` to a root-mean-square error ``rmse`` by the estimator a pilot predicts cheapest (module).
 
-    Arguments as :func:`~nhsde.simulate`, and:
+    Arguments as :func:`~nhsde.simulate` (``run=`` or its keywords: with ``run=``, its steps are the coarsest step
+    and its solver the one considered, unless ``estimators=`` name theirs), and:
 
     - ``statistic``: ``('mean', name)`` or ``('cov', name_a, name_b)`` at ``t1``; the names
       must be saved (``save.names``, default the statistic's names, of the system's observables).
@@ -287,6 +285,65 @@ def to_accuracy(
     - ``wrt``: names of scalar parameters (``('eps', 'nu')``): the statistic's derivatives in them with their
       standard errors (``derivative()``), from the chosen estimator's per-path tangents.
     """
+    if run is not None:  # the run's options as the keywords they stand for (its solver: the one considered)
+        run_options("to_accuracy", run, t0=t0, t1=t1, dt=dt, steps=steps, solver=solver, save=save, batching=batching)
+        t0, t1, steps, save, batching = run.t0, run.t1, run.steps, run.save, run.batching
+        solver = run.solver if estimators is None else None  # (estimators= carry their own)
+    return _to_accuracy(
+        system,
+        y0,
+        key,
+        statistic=statistic,
+        t1=t1,
+        rmse=rmse,
+        relative_rmse=relative_rmse,
+        t0=t0,
+        dt=dt,
+        steps=steps,
+        solver=solver,
+        weak_order=weak_order,
+        save=save,
+        antithetic=antithetic,
+        pilot_paths=pilot_paths,
+        pilot_levels=pilot_levels,
+        max_path_steps=max_path_steps,
+        cost=cost,
+        estimators=estimators,
+        explore=explore,
+        batching=batching,
+        wrt=wrt,
+        own_step=False,
+    )
+
+
+def _to_accuracy(
+    system,
+    y0,
+    key,
+    *,
+    statistic,
+    t1,
+    rmse,
+    relative_rmse,
+    t0,
+    dt,
+    steps,
+    solver,
+    weak_order,
+    save,
+    antithetic,
+    pilot_paths,
+    pilot_levels,
+    max_path_steps,
+    cost,
+    estimators,
+    explore,
+    batching,
+    wrt,
+    own_step: bool,
+) -> AccuracyResult:
+    """:func:`to_accuracy`'s stages; ``own_step``: this call retries from half the coarsest step of an attempt that
+    chose it itself (so its step may be halved again where paths fail)."""
     call = dict(locals())  # the arguments, for a retry from a finer coarsest step
     watch = Stopwatch()
     if not isinstance(system, StochasticSystem):
@@ -322,10 +379,13 @@ def to_accuracy(
     # highest weak order: the solver most alternatives choose
     first_solver = max(candidates, key=lambda c: (not c.converts(system), c.order))
     default_step = dt is None and steps is None
-    own_step = default_step or _OWN_STEP.get()  # halved where paths fail: the default or its retry's half
+    own_step = default_step or own_step  # halved where paths fail: the default or its retry's half
     if default_step:  # the coarsest step: (t1 − t0)/4, halved until the first pilot's solver damps the friction
-        t0, t1 = check_span(t0, t1)  # (another solver unstable there is listed as not applying: its pilot
-        dt = (t1 - t0) / 4  # refuses the step)
+        if t1 is None:
+            raise TypeError("to_accuracy needs t1 (or run=nhsde.RunOptions(...)).")
+        # (another solver unstable there is listed as not applying: its pilot refuses the step)
+        t0, t1 = check_span(0.0 if t0 is None else t0, t1)
+        dt = (t1 - t0) / 4
         while not stable_step(system, first_solver.solver, dt) and dt > (t1 - t0) / 2**30:
             dt /= 2
     run = run_options(
@@ -428,11 +488,7 @@ def to_accuracy(
         """Every alternative priced again from half the step (a pilot path that grew huge without overflowing
         inflates the bias bound; a rare path blows up in the run), this attempt's work counted."""
         failed = watch.cost(work)
-        token = _OWN_STEP.set(True)
-        try:
-            again = to_accuracy(**{**call, "dt": h0 / 2})
-        finally:
-            _OWN_STEP.reset(token)
+        again = _to_accuracy(**{**call, "dt": h0 / 2, "steps": None, "own_step": True})
         return dataclasses.replace(
             again,
             cost=again.cost + failed,

@@ -75,7 +75,7 @@ from jaxtyping import Array, Float, Int
 
 from .._ensemble import Save
 from .._misc import cast_floats, check_key
-from .._options import AbstractSteps, Batching, run_options
+from .._options import AbstractSteps, Batching, RunOptions, run_options
 from .._params import validated
 from .._solvers import solver_needs
 from .._system import StateLayout, StochasticSystem
@@ -358,19 +358,20 @@ def control_variate(
     key,
     *,
     n_paths: int,
-    t1: float,
+    t1: float | None = None,
     dt: float | None = None,
     steps: AbstractSteps | None = None,
-    t0: float = 0.0,
-    solver="euler",
+    t0: float | None = None,
+    solver=None,
     save: Save | None = None,
     linearisation=None,
     batching: Batching | None = None,
+    run: RunOptions | None = None,
     wrt=None,
 ) -> ControlVariateEstimate:
     """Means and covariances of the saved quantities with the linearised system as control variate (module).
 
-    Arguments as :func:`~nhsde.simulate` (fixed steps: ``dt`` or
+    Arguments as :func:`~nhsde.simulate` (``run=`` or its keywords; fixed steps: ``dt`` or
     ``steps=FixedSteps(dt)``; ``y0`` one state ``(d,)``); ``save`` defaults to the
     whole state at ``t0`` and ``t1`` (per-path values are kept internally).
     ``linearisation``: ``'mean'`` (default: about the noiseless motion from ``y0``)
@@ -389,12 +390,21 @@ def control_variate(
     wrt = () if wrt is None else check_wrt(system, wrt)
     (n_paths,) = checked_paths("n_paths", n_paths)
     options = run_options(
-        "control_variate", t0=t0, t1=t1, dt=dt, steps=steps, solver=solver, batching=batching, brownian_dt=True
+        "control_variate",
+        run,
+        t0=t0,
+        t1=t1,
+        dt=dt,
+        steps=steps,
+        solver=solver,
+        save=save,
+        batching=batching,
+        brownian_dt=True,
     )
     n_steps = options.n_steps
     y0 = system.state(y0, "y0")
-    solver_needs(solver, system)  # names the solver if it cannot solve the system
-    save = paths_save(save, n_steps, system.layout.names)
+    solver_needs(options.solver, system)  # names the solver if it cannot solve the system
+    save = paths_save(options.save, n_steps, system.layout.names)
     assert save.names is not None
     names = save.names
     system.observe(names)  # unknown names raise naming save
@@ -411,11 +421,11 @@ def control_variate(
 
     options = dataclasses.replace(options, save=save)
 
-    def run(s: StochasticSystem, start):
+    def solve(s: StochasticSystem, start):
         return solve_paths_with_tangents(s, start, key, options, wrt, first_path=0, n_paths=n_paths)
 
-    y, t_y = run(system, y0)
-    c, t_c = run(control.system, control.start)
+    y, t_y = solve(system, y0)
+    c, t_c = solve(control.system, control.start)
     on_host = array_module(y, c) is np
     (ts, exact_mean, exact_cov), d_exact = control.exact(
         system, names, options.t0, options.t1, n_steps, n_save, wrt, on_host

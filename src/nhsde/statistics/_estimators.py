@@ -24,7 +24,7 @@ import jax
 from .._brownian import BLOCK
 from .._ensemble import Save, SimulationError
 from .._misc import fold_key
-from .._options import FixedSteps, RunOptions
+from .._options import RunOptions
 from .._system import StochasticSystem
 from ._control_variate import control_variate as linearised_control_variate
 from ._cost import MAX_REFINEMENTS, allocate, best_single, bias, level_cost, multilevel_plan, whole_pieces
@@ -128,14 +128,12 @@ class Pricing:
                 self.y0,
                 fold_key(self._pilot_key(cand), fold),
                 n_paths=(self.pilot_paths,) * self.pilot_levels,
-                dt=self.h0,
-                solver=cand.solver,
+                run=self.run_at(self.h0, cand.solver),
                 weak_order=cand.order,
                 antithetic=antithetic,
                 control="mean",
                 piece_paths=self.pilot_paths,
                 statistic=self.statistic,
-                **self.run_options(tangents=False),
             )
 
         res = run(96)
@@ -173,14 +171,18 @@ class Pricing:
     def _pilot_options(self, cand: Candidate) -> dict[str, Any]:
         return dict(levels=self.pilot_levels, n_paths=self.pilot_paths, anti=cand.label in self.antithetic_pilots)
 
-    def run_options(self, keep_paths: bool = True, tangents: bool = True) -> dict[str, Any]:
-        """The options every run shares: ``save`` without per-path values where the estimator keeps none, and the
-        parameters ``wrt`` unless ``tangents`` is false (pilots)."""
+    def run_at(self, dt: float, solver, *, brownian_dt: float | None = None, keep_paths: bool = True) -> RunOptions:
+        """The question's run at steps ``dt`` (on a Brownian path of base step ``brownian_dt``) with ``solver``;
+        ``save`` without per-path values where the estimator keeps none."""
         save = self.run.save
         assert save is not None
         save = save if keep_paths else Save(names=save.names, n=save.n)
-        options: dict[str, Any] = dict(t0=self.run.t0, t1=self.run.t1, save=save, batching=self.run.batching)
-        return options | dict(wrt=self.wrt or None) if tangents else options
+        return dataclasses.replace(self.run.at(dt, brownian_dt), solver=solver, save=save)
+
+    @property
+    def tangents(self) -> tuple[str, ...] | None:
+        """The parameters a run differentiates in (``None``: none)."""
+        return self.wrt or None
 
 
 class AbstractEstimator(abc.ABC):
@@ -192,6 +194,40 @@ class AbstractEstimator(abc.ABC):
     antithetic: bool
     control: bool = False  # the linearised system as a control variate inside it (where it has the field)
     method: str  # its name in the report
+
+    def __call__(
+        self,
+        system: StochasticSystem,
+        y0,
+        key,
+        statistic,
+        *,
+        rmse: float | None = None,
+        relative_rmse: float | None = None,
+        run: RunOptions | None = None,
+        wrt=None,
+        **options,
+    ):
+        """This estimator to a target: a pilot predicts its plan (steps, levels, paths) for ``rmse`` (or
+        ``relative_rmse``) of ``statistic`` at ``t1``, then it runs the plan (:func:`~nhsde.statistics.to_accuracy`
+        with ``estimators=[self]``: the same result, report and checks).  The run's options as ``run=`` or
+        :func:`~nhsde.simulate`'s keywords (``t1``, ``dt`` the coarsest step, …); ``options`` also takes
+        ``to_accuracy``'s ``pilot_paths``, ``pilot_levels`` and ``max_path_steps``.  Returns an
+        :class:`~nhsde.statistics.AccuracyResult`."""
+        from ._accuracy import to_accuracy
+
+        return to_accuracy(
+            system,
+            y0,
+            key,
+            statistic=statistic,
+            rmse=rmse,
+            relative_rmse=relative_rmse,
+            run=run,
+            wrt=wrt,
+            estimators=(self,),
+            **options,
+        )
 
     @property
     def candidate(self) -> Candidate:
@@ -279,12 +315,11 @@ class PlainMonteCarlo(AbstractEstimator):
             pricing.y0,
             pricing.run_key,
             n_paths=(n_total,),
-            dt=plan.dt,
-            solver=self.solver,
+            run=pricing.run_at(plan.dt, self.solver),
             antithetic=self.antithetic,
             piece_paths=piece,
             statistic=pricing.statistic,
-            **pricing.run_options(),
+            wrt=pricing.tangents,
         )
         return res, plan.bias
 
@@ -319,11 +354,10 @@ class Richardson(AbstractEstimator):
             pricing.y0,
             pricing.run_key,
             n_paths=plan.n_paths[0],
-            dt=plan.dt,
-            solver=self.solver,
+            run=pricing.run_at(plan.dt, self.solver),
             order=self.candidate.order,
             antithetic=self.antithetic,
-            **pricing.run_options(),
+            wrt=pricing.tangents,
         )
         return res, plan.bias
 
@@ -394,14 +428,13 @@ class Multilevel(AbstractEstimator):
             pricing.y0,
             pricing.run_key,
             n_paths=plan.n_paths,
-            dt=plan.dt,
-            solver=self.solver,
+            run=pricing.run_at(plan.dt, self.solver),
             weak_order=self.candidate.order,
             antithetic=self.antithetic,
             control="mean" if self.control else None,
             piece_paths=plan.piece_paths,
             statistic=pricing.statistic,
-            **pricing.run_options(),
+            wrt=pricing.tangents,
         )
         return res, float(res.bias)
 
@@ -427,7 +460,6 @@ class ControlVariate(AbstractEstimator):
     def predict(self, pricing: Pricing) -> AccuracyAlternative:
         n_pilot, levels = pricing.pilot_paths, pricing.pilot_levels
         h_a, h_b = pricing.h0 / 2 ** (levels - 2), pricing.h0 / 2 ** (levels - 1)
-        options = pricing.run_options(keep_paths=False, tangents=False)
         try:
             runs = [
                 linearised_control_variate(
@@ -435,8 +467,7 @@ class ControlVariate(AbstractEstimator):
                     pricing.y0,
                     fold_key(pricing.pilot_key, 99),
                     n_paths=n_pilot,
-                    steps=FixedSteps(h, brownian_dt=h_b),
-                    **options,
+                    run=pricing.run_at(h, self.solver, brownian_dt=h_b, keep_paths=False),
                 )
                 for h in (h_a, h_b)
             ]
@@ -461,8 +492,8 @@ class ControlVariate(AbstractEstimator):
             pricing.y0,
             pricing.run_key,
             n_paths=plan.n_paths[0],
-            dt=plan.dt,
-            **pricing.run_options(keep_paths=False),
+            run=pricing.run_at(plan.dt, self.solver, keep_paths=False),
+            wrt=pricing.tangents,
         )
         return res, plan.bias
 

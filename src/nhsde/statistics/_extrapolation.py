@@ -27,7 +27,7 @@ from jaxtyping import Array, Float, Int
 
 from .._ensemble import Save
 from .._misc import check_number
-from .._options import Batching, FixedSteps, run_options
+from .._options import Batching, FixedSteps, RunOptions, run_options
 from .._solvers import solver_needs
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
@@ -76,21 +76,22 @@ def extrapolate(
     key,
     *,
     n_paths: int,
-    t1: float,
+    t1: float | None = None,
     dt: float | None = None,
     steps: FixedSteps | None = None,
-    t0: float = 0.0,
-    solver: str | dfx.AbstractSolver = "euler",
+    t0: float | None = None,
+    solver: str | dfx.AbstractSolver | None = None,
     order: int | None = None,
     save: Save | None = None,
     antithetic: bool = False,
     batching: Batching | None = None,
+    run: RunOptions | None = None,
     wrt: Sequence[str] | None = None,
 ) -> Extrapolation:
     """Richardson–Romberg extrapolation ``(2^p S(h/2) − S(h))/(2^p − 1)`` of every saved mean and covariance.
 
-    Arguments as :func:`~nhsde.simulate`, with ``dt = h`` (or ``steps=FixedSteps(h)``) the coarse step (``h/2``
-    must divide ``t1 − t0``).  ``order``: the weak order ``p`` of ``solver``
+    Arguments as :func:`~nhsde.simulate` (``run=`` or its keywords), with ``dt = h`` (or ``steps=FixedSteps(h)``) the
+    coarse step (``h/2`` must divide ``t1 − t0``).  ``order``: the weak order ``p`` of ``solver``
     (default 2 for :class:`~nhsde.PlatenWeak2`, else 1; pass 2 for Heun or SRA1
     on additive noise, where they are weak order 2).  ``save`` defaults to the
     whole state at ``t0`` and ``t1``.  ``antithetic`` adds the reflected paths.
@@ -102,13 +103,13 @@ def extrapolate(
     if not isinstance(system, StochasticSystem):
         raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
     wrt = () if wrt is None else check_wrt(system, wrt)
-    solver_needs(coupling_solver(solver), system)
+    run = run_options("extrapolate", run, t0=t0, t1=t1, dt=dt, steps=steps, solver=solver, save=save, batching=batching)
+    solver_needs(coupling_solver(run.solver), system)
     if order is None:
-        order = 2 if isinstance(solver, PlatenWeak2) else 1
+        order = 2 if isinstance(run.solver, PlatenWeak2) else 1
     p = check_number("order", order, positive=True)
-    run = run_options("extrapolate", t0=t0, t1=t1, dt=dt, steps=steps, solver=solver, batching=batching)
     h, n_steps = run.dt, run.n_steps
-    save = paths_save(save, n_steps, system.layout.names)
+    save = paths_save(run.save, n_steps, system.layout.names)
     assert save.names is not None and save.n is not None
     (n_paths,) = checked_paths("n_paths", n_paths)
     solves = 4 if antithetic else 2

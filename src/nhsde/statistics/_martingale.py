@@ -61,7 +61,7 @@ import numpy as np
 
 from .._ensemble import Save
 from .._misc import check_key, check_number, is_concrete
-from .._options import AbstractSteps, Batching, run_options
+from .._options import AbstractSteps, Batching, RunOptions, run_options
 from .._solvers import solver_needs
 from .._system import StateLayout, StochasticSystem
 from .._weak import PlatenWeak2
@@ -488,23 +488,25 @@ def martingale_control_variate(
     statistic,
     *,
     n_paths: int,
-    t1: float,
+    t1: float | None = None,
     dt: float | None = None,
     steps: AbstractSteps | None = None,
-    t0: float = 0.0,
+    t0: float | None = None,
     n_pilot: int | None = None,
-    solver="euler",
+    solver=None,
     basis="quadratic",
     time_degree: int = 2,
     save: Save | None = None,
     batching: Batching | None = None,
+    run: RunOptions | None = None,
     wrt=None,
 ) -> ControlVariateEstimate:
     """Means and covariances with the martingale control ``Σₙ Zₙ(Xₙ)·ΔWₙ`` fitted on an independent pilot (module).
 
     ``statistic``: :class:`Mean` or :class:`Covariance` (or ``('mean', name)``, ``('cov', a, b)``), the estimate's
     default for ``value()``; ``save`` defaults to its names at ``t0`` and ``t1``, and every saved mean and covariance
-    entry gets its own control.  Fixed steps (``dt`` or ``steps=FixedSteps(dt)``); ``solver``: ``'euler'``,
+    entry gets its own control.  The run's options as :func:`~nhsde.simulate`'s (``run=`` or its keywords), fixed
+    steps (``dt`` or ``steps=FixedSteps(dt)``); ``solver``: ``'euler'``,
     ``'weak2'`` or :class:`~nhsde.PlatenWeak2` (either increments).  ``basis``: ``'linear'``, ``'quadratic'``
     (default) or ``'cubic'`` (gradients of monomials of the state times ``b``), or a callable
     ``(t, x, params) -> (K, noise_dim)``; times ``τʲ``, ``j ≤ time_degree``.  ``n_pilot``: the fit's paths
@@ -524,18 +526,21 @@ def martingale_control_variate(
     (n_paths,) = checked_paths("n_paths", n_paths)
     options = run_options(
         "martingale_control_variate",
+        run,
         t0=t0,
         t1=t1,
         dt=dt,
         steps=steps,
         solver=solver,
+        save=save,
         batching=batching,
         brownian_dt=True,
     )
-    _check_solver(solver)
-    solver_needs(solver, system)
+    _check_solver(options.solver)
+    solver_needs(options.solver, system)
     y0 = system.state(y0, "y0")
     n_steps = options.n_steps
+    save = options.save
     save = paths_save(Save(names=statistic.names, n=2) if save is None else save, n_steps, statistic.names)
     assert save.names is not None and save.n is not None
     names = save.names

@@ -236,15 +236,16 @@ def multilevel_monte_carlo(
     y0,
     key,
     *,
-    t1: float,
     statistic,
+    t1: float | None = None,
     rmse: float | None = None,
     n_paths: Sequence[int] | None = None,
     dt: float | None = None,
     steps: AbstractSteps | None = None,
-    t0: float = 0.0,
-    solver: str | dfx.AbstractSolver = "euler",
+    t0: float | None = None,
+    solver: str | dfx.AbstractSolver | None = None,
     save: Save | None = None,
+    run: RunOptions | None = None,
     weak_order: float | None = None,
     antithetic: bool = False,
     control=None,
@@ -255,7 +256,7 @@ def multilevel_monte_carlo(
 ) -> MultilevelEstimate:
     """Multilevel Monte Carlo estimate of the saved means and covariances (module docstring).
 
-    Arguments as :func:`~nhsde.simulate`, and:
+    Arguments as :func:`~nhsde.simulate` (``run=`` or its keywords), and:
 
     - ``statistic``: the statistic whose RMSE is controlled, at ``t1``: :class:`~nhsde.statistics.Mean`,
       :class:`~nhsde.statistics.Covariance` or the shorthand ``('mean', name)``, ``('cov', a, b)``; its names must
@@ -286,8 +287,10 @@ def multilevel_monte_carlo(
         raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
     if (rmse is None) == (n_paths is None):
         raise TypeError("multilevel_monte_carlo needs exactly one of rmse=… (adaptive) or n_paths=(N_0, …, N_L).")
-    run = run_options("multilevel_monte_carlo", t0=t0, t1=t1, dt=dt, steps=steps, solver=solver, batching=batching)
-    h0, steps0 = run.dt, run.n_steps
+    run = run_options(
+        "multilevel_monte_carlo", run, t0=t0, t1=t1, dt=dt, steps=steps, solver=solver, save=save, batching=batching
+    )
+    h0, steps0, solver = run.dt, run.n_steps, run.solver
     solver_needs(coupling_solver(solver), system)
     if not isinstance(antithetic, bool):
         raise TypeError(f"antithetic={antithetic!r}; expected True or False.")
@@ -306,7 +309,7 @@ def multilevel_monte_carlo(
             f"max_levels={max_levels}; must be ≥ 1, and ≥ 2 with rmse=… (the bias estimate compares two levels)."
         )
     statistic = as_statistic(statistic)
-    save = paths_save(save, steps0, statistic.names)
+    save = paths_save(run.save, steps0, statistic.names)
     assert save.names is not None
     statistic.check(save.names)
     key = check_key(key)

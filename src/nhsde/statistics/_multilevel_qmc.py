@@ -276,14 +276,28 @@ def _slope(y, c):
 
 
 def _checked_run(
-    who: str, system: StochasticSystem, *, dt, steps, t0, t1, solver, batching, replicates, antithetic, control, wrt
+    who: str,
+    system: StochasticSystem,
+    run: RunOptions | None,
+    *,
+    dt,
+    steps,
+    t0,
+    t1,
+    solver,
+    save,
+    batching,
+    replicates,
+    antithetic,
+    control,
+    wrt,
 ) -> tuple[RunOptions, tuple[str, ...], int]:
     """The checks both quasi-Monte Carlo entry points make: the run options (``(t1 − t0)/dt`` a power of two whose
     steps × channels fit the direction numbers), a Wiener driver, a solver the Sobol' driver gives increments to,
     ``wrt``, ``replicates`` (≥ 2, ≥ 3 with a control) and ``antithetic``; returns ``(run, wrt, replicates)``."""
     if not isinstance(system, StochasticSystem):
         raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
-    run = run_options(who, t0=t0, t1=t1, dt=dt, steps=steps, solver=solver, batching=batching)
+    run = run_options(who, run, t0=t0, t1=t1, dt=dt, steps=steps, solver=solver, save=save, batching=batching)
     h0, steps0 = run.dt, run.n_steps
     if steps0 & (steps0 - 1):
         raise ValueError(
@@ -295,7 +309,7 @@ def _checked_run(
             f"system.noise={type(system.noise).__name__} has jumps; quasi-Monte Carlo needs a Wiener driver "
             "(nhsde.noise.Wiener)."
         )
-    check_solver(solver, system)  # (a three-point weak2 is refused here: its increments are not the driver's)
+    check_solver(run.solver, system)  # (a three-point weak2 is refused here: its increments are not the driver's)
     m = system.noise_dim
     if steps0 * m > MAX_DIMENSION:
         raise ValueError(
@@ -318,15 +332,16 @@ def multilevel_quasi_monte_carlo(
     y0,
     key,
     *,
-    t1: float,
     statistic,
+    t1: float | None = None,
     dt: float | None = None,
     steps: FixedSteps | None = None,
     rmse: float | None = None,
     n_points: Sequence[int] | None = None,
-    t0: float = 0.0,
-    solver: str | dfx.AbstractSolver = "euler",
+    t0: float | None = None,
+    solver: str | dfx.AbstractSolver | None = None,
     save: Save | None = None,
+    run: RunOptions | None = None,
     weak_order: float | None = None,
     replicates: int = 16,
     max_levels: int = MAX_LEVELS,
@@ -369,6 +384,8 @@ def multilevel_quasi_monte_carlo(
     run, wrt, replicates = _checked_run(
         "multilevel_quasi_monte_carlo",
         system,
+        run,
+        save=save,
         dt=dt,
         steps=steps,
         t0=t0,
@@ -382,7 +399,7 @@ def multilevel_quasi_monte_carlo(
     )
     h0, steps0, m = run.dt, run.n_steps, system.noise_dim
     if weak_order is None:
-        alpha = 2 if isinstance(solver, PlatenWeak2) else 1
+        alpha = 2 if isinstance(run.solver, PlatenWeak2) else 1
     else:
         alpha = check_number("weak_order", weak_order, positive=True)
     max_levels = check_number("max_levels", max_levels, integer=True)
@@ -398,7 +415,7 @@ def multilevel_quasi_monte_carlo(
             "dimensions, and rmse=… needs two levels; take a larger dt or a shorter t1 − t0."
         )
     statistic = as_statistic(statistic)
-    save = paths_save(save, steps0, statistic.names)
+    save = paths_save(run.save, steps0, statistic.names)
     assert save.names is not None
     statistic.check(save.names)
     key = check_key(key)
@@ -451,13 +468,14 @@ def quasi_monte_carlo(
     key,
     *,
     n_paths: int,
-    t1: float,
+    t1: float | None = None,
     dt: float | None = None,
     steps: FixedSteps | None = None,
     replicates: int = 16,
-    t0: float = 0.0,
-    solver: str | dfx.AbstractSolver = "euler",
+    t0: float | None = None,
+    solver: str | dfx.AbstractSolver | None = None,
     save: Save | None = None,
+    run: RunOptions | None = None,
     antithetic: bool = False,
     batching: Batching | None = None,
     wrt: Sequence[str] | None = None,
@@ -496,6 +514,8 @@ def quasi_monte_carlo(
     run, wrt, replicates = _checked_run(
         "quasi_monte_carlo",
         system,
+        run,
+        save=save,
         dt=dt,
         steps=steps,
         t0=t0,
@@ -514,7 +534,7 @@ def quasi_monte_carlo(
             f"(the Sobol' points of a scrambling form a net), and at most {KEY_PATHS} paths in all."
         )
     key = check_key(key)
-    save = paths_save(Save() if save is None else save, run.n_steps, system.layout.names)
+    save = paths_save(Save() if run.save is None else run.save, run.n_steps, system.layout.names)
     assert save.names is not None and save.n is not None
     system.observe(save.names)  # unknown names raise naming save
     run = dataclasses.replace(run, save=save)

@@ -95,16 +95,18 @@ class AccuracyResult:
     alternatives: tuple[AccuracyAlternative, ...]
     pilot: tuple[PilotSummary, ...]
 
-    def value(self) -> tuple[float, float]:
-        """``(value, standard error)`` of the statistic."""
-        value, se = self.estimate.value(self.statistic)
+    def value(self, statistic=None) -> tuple[float, float]:
+        """``(value, standard error)`` of ``statistic`` (default: the one the target was for; another saved one is
+        read from the same run, whose effort was chosen for the target's)."""
+        value, se = self.estimate.value(self.statistic if statistic is None else statistic)
         return float(value), float(se)
 
-    def derivative(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(derivatives, standard errors)`` ``(len(wrt),)`` in the parameters ``wrt`` (empty without)."""
+    def derivative(self, statistic=None) -> tuple[np.ndarray, np.ndarray]:
+        """``(derivatives, standard errors)`` ``(len(wrt),)`` of ``statistic`` (as for :meth:`value`) in the
+        parameters ``wrt`` (empty without)."""
         if self.estimate.derivatives is None:
             return np.zeros(0), np.zeros(0)
-        d, se = self.estimate.derivative(self.statistic)
+        d, se = self.estimate.derivative(self.statistic if statistic is None else statistic)
         return np.asarray(d, float), np.asarray(se, float)
 
     @property

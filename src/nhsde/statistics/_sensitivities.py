@@ -208,13 +208,14 @@ def moment_sensitivities(
     *,
     wrt: Sequence[str],
     n_paths: int,
-    t1: float,
+    t1: float | None = None,
     dt: float | None = None,
-    t0: float = 0.0,
-    solver: str | dfx.AbstractSolver = "euler",
+    t0: float | None = None,
+    solver: str | dfx.AbstractSolver | None = None,
     steps: AbstractSteps | None = None,
     save: Save | None = None,
     batching: Batching | None = None,
+    run: RunOptions | None = None,
     on_failure: Literal["raise", "exclude"] = "raise",
     first_path: int = 0,
     progress_meter: dfx.AbstractProgressMeter | None = None,
@@ -226,7 +227,7 @@ def moment_sensitivities(
     ``.cov`` in those parameters for the same key (to rounding).
 
     Arguments:
-        system, y0, key, n_paths, t0, t1, dt, solver, steps, batching, first_path, progress_meter: as for
+        system, y0, key, n_paths, t0, t1, dt, solver, steps, batching, run, first_path, progress_meter: as for
             :func:`~nhsde.simulate`.
         wrt: names of scalar parameter leaves of ``system.params`` (``('eps', 'nu')``); the derivatives
             are stacked in this order along the leading axis.
@@ -246,6 +247,7 @@ def moment_sensitivities(
     wrt = check_wrt(system, wrt)
     run = run_options(
         "moment_sensitivities",
+        run,
         t0=t0,
         t1=t1,
         dt=dt,
@@ -264,7 +266,7 @@ def moment_sensitivities(
         # simulate's checks, made now on the concrete parameters (its run, traced with them as tangents, cannot):
         # y0, the ranges in the state's precision and the step's stability (its plain call's messages and warning);
         # too few paths and overflow are checked below, from the run's counts and statistics
-        y0 = check_on_host(system, y0, n_paths=n_paths, solver=solver, dt=step)
+        y0 = check_on_host(system, y0, n_paths=n_paths, solver=run.solver, dt=step)
     with watching():  # Ctrl-C stops the compiled run
         with checked_on_host() if step is not None else contextlib.nullcontext():
             out = _sensitivities(system, wrt, values, y0, key, run, options)
