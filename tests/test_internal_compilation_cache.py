@@ -12,7 +12,7 @@ from test_compilation_cache import VARIABLE, _restore_jax_cache_settings  # noqa
 
 import nhsde
 from nhsde._params import checked_on_host
-from nhsde._simulate import forward_only
+from nhsde._simulate import simulate_run
 from nhsde.runs import _cli, main
 
 SINGULAR = "the derivative with respect to a noise intensity nu at nu = 0 is singular"
@@ -29,11 +29,11 @@ def test_a_forward_mode_derivative_in_nu_at_concrete_nu_is_cached(tmp_path, capl
     def ask():
         def k_xx(eps, nu):
             p = system.replace_params(eps=eps, nu=nu)
-            ens = nhsde.simulate(p, scene.initial_state(), jax.random.key(0), n_paths=64, t1=1.0, dt=0.1)
+            run = nhsde.RunOptions(t1=1.0, steps=nhsde.FixedSteps(0.1), save=nhsde.Save())
+            ens = simulate_run(p, scene.initial_state(), jax.random.key(0), run, n_paths=64, forward_only=True)
             return ens.cov[-1, 0, 0]
 
-        with forward_only():
-            return jax.jacfwd(k_xx, argnums=(0, 1))(system.params.eps, system.params.nu)
+        return jax.jacfwd(k_xx, argnums=(0, 1))(system.params.eps, system.params.nu)
 
     d_eps, d_nu = ask()
     assert jnp.isfinite(d_eps) and jnp.isfinite(d_nu) and d_nu > 0

@@ -70,7 +70,9 @@ def test_run_options_check_themselves():
         S.extrapolate(SYSTEM, Y0, KEY, n_paths=64, run=nhsde.RunOptions(t1=1.0, steps=nhsde.AdaptiveSteps(0.1)))
 
 
-@pytest.mark.parametrize("estimator", [S.PlainMonteCarlo(), S.Multilevel()], ids=lambda e: e.name)
+@pytest.mark.parametrize(
+    "estimator", [S.PlainMonteCarlo(), S.Multilevel(), S.MartingaleControlVariate()], ids=lambda e: e.name
+)
 def test_an_estimator_object_is_called_to_a_target(estimator):
     """``Estimator()(system, y0, key, statistic, rmse=…, run=…)`` meets the target against the closed form of S0
     (3.1), k_uu = νδ²(1 − e^{−4εt})/(4ε); the result reads another saved statistic of the same run: the mean

@@ -21,7 +21,6 @@ about 1 GiB, so its memory is bounded by the steps per save interval.
 from __future__ import annotations
 
 import contextlib
-import contextvars
 import dataclasses
 import functools
 import math
@@ -65,34 +64,6 @@ from ._system import StochasticSystem
 from ._weak import WeakIncrement
 
 __all__ = ["MAX_PATH_INDEX", "MIN_PATHS", "check_on_host", "simulate", "stable_step"]
-
-_FORWARD_ONLY = contextvars.ContextVar("nhsde_forward_only", default=False)
-
-
-@contextlib.contextmanager
-def forward_only():
-    """Within: :func:`simulate`'s caller differentiates it in forward mode only (``jax.jvp``/``jax.jacfwd`` of
-    concrete values), so the step count may be data (a while loop, which has no reverse mode)."""
-    token = _FORWARD_ONLY.set(True)
-    try:
-        yield
-    finally:
-        _FORWARD_ONLY.reset(token)
-
-
-_PRICED_STEPS = contextvars.ContextVar("nhsde_priced_steps", default=False)
-
-
-@contextlib.contextmanager
-def priced_steps():
-    """Within: :func:`simulate`'s steps are an estimator's own, whose bias it measures and prices, so the
-    stationary-variance warning is neither raised nor worked out (its message compiles a check per solver)."""
-    token = _PRICED_STEPS.set(True)
-    try:
-        yield
-    finally:
-        _PRICED_STEPS.reset(token)
-
 
 MAX_PATH_INDEX = 2**31 - 1
 """Paths ``0 … MAX_PATH_INDEX − 1`` of a key have distinct noise (path indices are 32-bit integers)."""
@@ -483,7 +454,7 @@ def _work_dtype(dtype):
 
 
 def _check_linear_stability(
-    system: StochasticSystem, needs: SolverNeeds, dt: float, dtype, stacklevel: int = 3
+    system: StochasticSystem, needs: SolverNeeds, dt: float, dtype, stacklevel: int = 3, warn: bool = True
 ) -> None:
     """Refuse a step at which the solver does not damp the declared linear drift (friction) that the exact flow
     damps, and warn where its stationary variance there is off by more than 10 %.
@@ -509,7 +480,7 @@ def _check_linear_stability(
                 f"beyond its stability limit: one step multiplies a mode by up to {float(gain):.3g} while the exact "
                 f"flow damps it); {fix}"
             )
-        if abs(float(off) - 1) > 0.1 and not _PRICED_STEPS.get():
+        if warn and abs(float(off) - 1) > 0.1:
             warnings.warn(
                 _variance_message(system, needs, dt, float(off), work), StationaryVarianceWarning, stacklevel=stacklevel
             )
@@ -700,8 +671,16 @@ def simulate_run(
     on_failure: Literal["raise", "exclude"] = "raise",
     progress_meter: dfx.AbstractProgressMeter | None = None,
     first_path: int = 0,
+    forward_only: bool = False,
+    priced_steps: bool = False,
 ) -> Ensemble:
-    """:func:`simulate` with its run options checked already (``run``): what the estimators' solves call."""
+    """:func:`simulate` with its run options checked already (``run``): what the estimators' solves call.
+
+    ``forward_only``: the caller differentiates this run in forward mode only, with concrete primal parameters
+    (``jax.jvp``/``jax.jacfwd``), so the step count may be data (a while loop, which has no reverse mode) and the
+    parameters count as checked.  ``priced_steps``: the steps are an estimator's own, whose bias it measures and
+    prices, so the stationary-variance warning is neither raised nor worked out (its message compiles a check per
+    solver)."""
     if not isinstance(system, StochasticSystem):
         raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
     if on_failure not in ("raise", "exclude"):
@@ -748,7 +727,7 @@ def simulate_run(
     # never more than the paths need: padding is simulated work that no statistic uses
     chunk_size = min(check_number("chunk_size", chunk_size, integer=True), BLOCK * math.ceil(n_paths / BLOCK))
     check_ranges(cast_floats(system.params, y0.dtype))  # a radius of 1e-50 is 0 in float32
-    _check_linear_stability(system, needs, step, y0.dtype)
+    _check_linear_stability(system, needs, step, y0.dtype, warn=not priced_steps)
     # Called in `checked_on_host` (by `moment_sensitivities`, whose parameters are concrete): the caller checked the
     # parameters' ranges and the step's stability on the host, and checks the run's outcome there itself, so a traced
     # run carries neither check (host callbacks, which keep its program out of the persistent compilation cache).
@@ -760,7 +739,7 @@ def simulate_run(
         n_chunks = len(devices) * math.ceil(n_chunks / len(devices))
     # The steps are data, so that one compiled program serves every step, unless a reverse-mode trace may need
     # static trip counts: plain calls, and calls whose callers differentiate in forward mode only.
-    steps_as_data = not adaptive and (_FORWARD_ONLY.get() or (is_concrete(system, y0) and not under_trace()))
+    steps_as_data = not adaptive and (forward_only or (is_concrete(system, y0) and not under_trace()))
     checkpoint = batching.checkpoint
     if checkpoint is None:  # reverse mode's memory: only where it can run
         checkpoint = not steps_as_data and _residuals_too_large(
@@ -805,9 +784,9 @@ def simulate_run(
         poll=n_paths * n_steps * system.state_dim > POLL_ABOVE,
         step_block=step_block(platform) if steps_as_data else 1,
         # forward mode of concrete values (the estimators' tangents): the primal values were checked when built
-        params_checked=is_concrete(system.params) or _FORWARD_ONLY.get() or parameters_checked_on_host(),
+        params_checked=is_concrete(system.params) or forward_only or parameters_checked_on_host(),
         nonzero_checked=parameters_checked_on_host()
-        or (_FORWARD_ONLY.get() and not is_concrete(system.params) and differentiated_nonzero(system.params)),
+        or (forward_only and not is_concrete(system.params) and differentiated_nonzero(system.params)),
     )
     meter = dfx.NoProgressMeter() if progress_meter is None else progress_meter
     if not isinstance(meter, dfx.AbstractProgressMeter):

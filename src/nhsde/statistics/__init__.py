@@ -15,7 +15,7 @@
   points through a Brownian bridge), :func:`multilevel_quasi_monte_carlo`; :func:`to_accuracy` chooses among
   them from a pilot run for a requested RMSE, among estimator objects (:class:`PlainMonteCarlo`,
   :class:`Richardson`, :class:`Multilevel`, :class:`ControlVariate`, :class:`QuasiMonteCarlo`,
-  :class:`MultilevelQuasiMonteCarlo`; ``estimators=``) that
+  :class:`MultilevelQuasiMonteCarlo`, :class:`MartingaleControlVariate`; ``estimators=``) that
   each predict their work from a pilot and run their plan.  Each returns an :class:`AbstractEstimate` (moments, standard
   errors, ``derivatives``, measured ``cost``); a statistic is named once, :class:`Mean` or :class:`Covariance`.
 - Derivatives of simulated moments with their standard errors: :func:`moment_sensitivities`.
@@ -67,6 +67,7 @@ from ._fokker_planck import (
     stationary_fokker_planck as stationary_fokker_planck,
 )
 from ._martingale import martingale_control_variate as martingale_control_variate
+from ._martingale_estimator import MartingaleControlVariate as MartingaleControlVariate
 from ._multilevel import MultilevelEstimate as MultilevelEstimate, multilevel_monte_carlo as multilevel_monte_carlo
 from ._multilevel_qmc import (
     multilevel_quasi_monte_carlo as multilevel_quasi_monte_carlo,

@@ -247,8 +247,8 @@ def to_accuracy(
       or finer.
     - ``estimators``: the estimators to choose among (:class:`PlainMonteCarlo`, :class:`Richardson`,
       :class:`Multilevel`, each with its solver and plain or antithetic paths; :class:`ControlVariate`,
-      :class:`QuasiMonteCarlo`, :class:`MultilevelQuasiMonteCarlo`).  Default: each of the first three for
-      Euler–Maruyama and
+      :class:`QuasiMonteCarlo`, :class:`MultilevelQuasiMonteCarlo`, :class:`MartingaleControlVariate`).  Default:
+      each of the first three for Euler–Maruyama and
       ``PlatenWeak2(increments='gaussian')`` (those the system's driver allows), and Heun's method (``'heun2'``)
       where the system is in Stratonovich form with state-dependent noise (:func:`native_solvers`), plain and
       antithetic (Wiener drivers), then the control variate (Euler) and quasi-Monte Carlo with each solver (its
@@ -369,8 +369,7 @@ def _to_accuracy(
         if not estimators or not all(isinstance(e, AbstractEstimator) for e in estimators):
             raise TypeError(
                 f"estimators={estimators!r}; expected a non-empty sequence of nhsde.statistics estimators "
-                "(PlainMonteCarlo, Richardson, Multilevel, ControlVariate, QuasiMonteCarlo, "
-                "MultilevelQuasiMonteCarlo)."
+                "(nhsde.statistics.AbstractEstimator instances, e.g. PlainMonteCarlo(), Multilevel())."
             )
         for e in estimators:
             e.check(system)

@@ -26,7 +26,7 @@ from jaxtyping import Array
 from .._ensemble import MIN_PATHS, Save
 from .._misc import check_number, fold_key, is_concrete, under_trace
 from .._options import FixedSteps, RunOptions
-from .._simulate import forward_only, priced_steps, simulate_run
+from .._simulate import simulate_run
 from .._system import StochasticSystem
 from .._weak import PlatenWeak2
 from ._estimate import Values
@@ -178,9 +178,7 @@ def with_tangents(fn: Callable[[StochasticSystem], Any], system: StochasticSyste
         return value, value
 
     values = tuple(jnp.asarray(getattr(system.params, name)) for name in wrt)
-    # concrete parameters: only this forward-mode pass differentiates the solves, so their steps may be data
-    with forward_only() if is_concrete(system) and not under_trace() else contextlib.nullcontext():
-        d, value = jax.jacfwd(both, argnums=tuple(range(len(wrt))), has_aux=True)(*values)
+    d, value = jax.jacfwd(both, argnums=tuple(range(len(wrt))), has_aux=True)(*values)
     return value, jax.tree.map(lambda _, per_parameter: array_module(per_parameter).stack(per_parameter), value, d)
 
 
@@ -252,9 +250,13 @@ def solve_paths_with_tangents(
     the host where concrete: the forward mode's reshaping then compiles a few programs per run size (two), not per
     path count."""
     keeps: list[int] = []
+    # concrete parameters: only this forward-mode pass differentiates the solves, so their steps may be data
+    forward_only = bool(wrt) and is_concrete(system) and not under_trace()
 
     def whole_runs(solved: StochasticSystem):
-        parts, kept = _solve_runs(solved, y0, key, run, first_path=first_path, n_paths=n_paths)
+        parts, kept = _solve_runs(
+            solved, y0, key, run, first_path=first_path, n_paths=n_paths, forward_only=forward_only
+        )
         keeps[:] = kept
         return parts
 
@@ -262,8 +264,11 @@ def solve_paths_with_tangents(
     return _joined(parts, keeps), None if tangents is None else _joined(tangents, keeps, axis=1)
 
 
-def _solve_runs(system: StochasticSystem, y0, key, run: RunOptions, *, first_path: int, n_paths: int):
-    """The saved paths of each whole run of :func:`solve_paths`, and how many of each run's paths it keeps."""
+def _solve_runs(
+    system: StochasticSystem, y0, key, run: RunOptions, *, first_path: int, n_paths: int, forward_only: bool = False
+):
+    """The saved paths of each whole run of :func:`solve_paths`, and how many of each run's paths it keeps
+    (``forward_only``: as :func:`~nhsde._simulate.simulate_run`'s)."""
     parts, keeps = [], []
     system = signed(system)  # one program for the paths and their reflections
     if isinstance(run.steps, FixedSteps) and run.steps.brownian_dt is None:  # the base step as data: one program
@@ -284,8 +289,16 @@ def _solve_runs(system: StochasticSystem, y0, key, run: RunOptions, *, first_pat
             counter = _SOLVED.get()
             if counter is not None:  # counted before the solve: a run that fails was done all the same
                 counter[0] += size_of_run * run.n_steps
-            with priced_steps():
-                ens = simulate_run(system, start_states, k, run, n_paths=size_of_run, first_path=start)
+            ens = simulate_run(
+                system,
+                start_states,
+                k,
+                run,
+                n_paths=size_of_run,
+                first_path=start,
+                forward_only=forward_only,
+                priced_steps=True,
+            )
             assert ens.paths is not None
             parts.append(ens.paths)
             keeps.append(keep)
