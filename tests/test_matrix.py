@@ -371,7 +371,7 @@ def sample(n: int, seed: int = 0) -> list[Cell]:
 SAMPLE = covering_sample()
 
 
-def _id(cell: Cell) -> str:
+def _id(cell: tuple[str, ...]) -> str:
     return "-".join(cell)
 
 
@@ -381,12 +381,16 @@ def test_cell(cell):
     assert outcome in ("finite and equal", "library error"), f"{outcome}: {detail}"
 
 
-def pytest_generate_tests(metafunc):
-    """The whole matrix's cells (about 80k) are generated only when ``-m`` selects them: collecting them costs every
-    other run (each xdist worker collects the suite) most of a minute."""
-    if metafunc.function is test_whole_matrix:
+def whole_matrix(metafunc, test, cells, sample) -> None:
+    """Parametrise ``test`` with the ``cells`` beyond the ``sample`` only when ``-m`` selects the matrix: collecting
+    about 80k cells costs every other run (each xdist worker collects the suite) most of a minute."""
+    if metafunc.function is test:
         selected = "matrix" in metafunc.config.option.markexpr.replace("not matrix", "")
-        metafunc.parametrize("cell", [c for c in ALL_CELLS if c not in SAMPLE] if selected else [], ids=_id)
+        metafunc.parametrize("cell", [c for c in cells if c not in sample] if selected else [], ids=_id)
+
+
+def pytest_generate_tests(metafunc):
+    whole_matrix(metafunc, test_whole_matrix, ALL_CELLS, SAMPLE)
 
 
 @pytest.mark.matrix

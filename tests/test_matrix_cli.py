@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_matrix import DT, INPUTS, N_PATHS, PRECISIONS, RTOL, SOLVER_NAMES, T1, nhsde_warnings_off
+from test_matrix import DT, INPUTS, N_PATHS, PRECISIONS, RTOL, SOLVER_NAMES, T1, _id, nhsde_warnings_off, whole_matrix
 
 import nhsde
 from nhsde.runs import load_run, main
@@ -290,10 +290,6 @@ def covering_sample() -> list[CliCell]:
 SAMPLE = covering_sample()
 
 
-def _id(cell: CliCell) -> str:
-    return "-".join(cell)
-
-
 @pytest.mark.parametrize("cell", SAMPLE, ids=_id)
 def test_cli_cell(cell):
     outcome, detail = run_cli_cell(cell)
@@ -301,10 +297,7 @@ def test_cli_cell(cell):
 
 
 def pytest_generate_tests(metafunc):
-    """The whole command matrix is generated only when ``-m`` selects it (as in :mod:`test_matrix`)."""
-    if metafunc.function is test_whole_cli_matrix:
-        selected = "matrix" in metafunc.config.option.markexpr.replace("not matrix", "")
-        metafunc.parametrize("cell", [c for c in ALL_CELLS if c not in SAMPLE] if selected else [], ids=_id)
+    whole_matrix(metafunc, test_whole_cli_matrix, ALL_CELLS, SAMPLE)
 
 
 @pytest.mark.matrix
