@@ -38,6 +38,7 @@ import numpy as np
 from .._misc import is_concrete
 from .._params import AbstractParameters, parameter
 from .._system import StateLayout
+from ..mechanics._small import matmul
 from ._body import RigidBody
 from ._surfaces import Disk, SphericalCavity, fibonacci_directions
 
@@ -59,12 +60,12 @@ def solve3(a, b):
     """``a⁻¹ b`` for a ``3×3`` matrix by cofactors (fuses into the surrounding code; LAPACK's batched
     small solves cost far more on CPU).  ``b`` is ``(3,)`` or ``(3, k)``."""
     cof = jnp.stack([jnp.cross(a[1], a[2]), jnp.cross(a[2], a[0]), jnp.cross(a[0], a[1])])  # rows: cofactors
-    return (cof.T @ b) / jnp.dot(a[0], cof[0])
+    return matmul(cof.T, b) / matmul(a[0], cof[0])
 
 
 def contact_inertia(inertia, mass, r):
     """``Ĩ = I + m(r²E − r⊗r)``: the inertia tensor about the contact point."""
-    return inertia + mass * (jnp.dot(r, r) * jnp.eye(3, dtype=r.dtype) - jnp.outer(r, r))
+    return inertia + mass * (matmul(r, r) * jnp.eye(3, dtype=r.dtype) - jnp.outer(r, r))
 
 
 def contact_kinematics(surface, omega, gamma, curvature=None):
@@ -81,18 +82,18 @@ def contact_kinematics(surface, omega, gamma, curvature=None):
     r = surface.contact_point(n)
     jac = jax.jacfwd(surface.contact_point)(n)
     n_dot = solve3(jnp.eye(3, dtype=n.dtype) - curvature * jac, jnp.cross(n, omega))
-    return n, n_dot, r, jac @ n_dot
+    return n, n_dot, r, matmul(jac, n_dot)
 
 
 def angular_acceleration(inertia, mass, gyrostat, omega, n, n_dot, r, r_dot, torque, rubber: bool):
     """``ω̇`` from ``Ĩω̇ = (Ĩω + S) × ω − m r × (ω × ṙ) + M_P (+ λγ)``, S2 (1.4), (1.7), (1.12)."""
     it = contact_inertia(inertia, mass, r)
-    rhs = jnp.cross(it @ omega + gyrostat, omega) - mass * jnp.cross(r, jnp.cross(omega, r_dot)) + torque
+    rhs = jnp.cross(matmul(it, omega) + gyrostat, omega) - mass * jnp.cross(r, jnp.cross(omega, r_dot)) + torque
     acc = solve3(it, rhs)
     if not rubber:
         return acc
     it_n = solve3(it, n)
-    lam = -(jnp.dot(n, acc) + jnp.dot(omega, n_dot)) / jnp.dot(n, it_n)
+    lam = -(matmul(n, acc) + matmul(omega, n_dot)) / matmul(n, it_n)
     return acc + lam * it_n
 
 
@@ -100,7 +101,7 @@ def position_rates(alpha, omega, n, r_dot):
     """``(α̇, ẋ, ẏ)``: the fixed horizontal axis ``OX`` in the body axes and the contact point on the plane,
     ``α̇ = α × ω``, ``ẋ = (α, ṙ)``, ``ẏ = (γ × α, ṙ)`` (S2 (1.4); ``α`` normalised like ``γ``)."""
     a = alpha / jnp.linalg.norm(alpha)
-    return jnp.concatenate([jnp.cross(alpha, omega), jnp.stack([jnp.dot(a, r_dot), jnp.dot(jnp.cross(n, a), r_dot)])])
+    return jnp.concatenate([jnp.cross(alpha, omega), jnp.stack([matmul(a, r_dot), matmul(jnp.cross(n, a), r_dot)])])
 
 
 class RollingParameters(AbstractParameters):
@@ -167,7 +168,9 @@ def rolling_energy(y, p):
     body = p.body
     omega, n = y[:3], y[3:6] / jnp.linalg.norm(y[3:6])
     r = body.surface.contact_point(n)
-    return 0.5 * omega @ contact_inertia(body.inertia, body.mass, r) @ omega - p.gravity * body.mass * jnp.dot(n, r)
+    return 0.5 * matmul(
+        omega, matmul(contact_inertia(body.inertia, body.mass, r), omega)
+    ) - p.gravity * body.mass * matmul(n, r)
 
 
 def check_rolling_configuration(p: RollingParameters, sphere: bool) -> None:
@@ -263,4 +266,4 @@ def flat_base_energy(y, p: FlatBaseParameters):
     zero = jnp.zeros((), y.dtype)
     omega = jnp.stack([y[0], y[1], zero])
     r = jnp.stack([y[2], y[3], p.z.astype(y.dtype)])
-    return 0.5 * omega @ contact_inertia(jnp.diag(p.inertia), p.mass, r) @ omega
+    return 0.5 * matmul(omega, matmul(contact_inertia(jnp.diag(p.inertia), p.mass, r), omega))

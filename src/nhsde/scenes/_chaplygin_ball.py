@@ -32,6 +32,7 @@ import jax.numpy as jnp
 from .._params import AbstractParameters, parameter, sqrt_intensity
 from .._system import StateLayout, StochasticSystem
 from ..bodies import position_rates
+from ..mechanics._small import matmul
 from ._base import AbstractScene
 
 __all__ = ["ChaplyginBall", "ChaplyginBallParameters", "chaplygin_ball_measure", "chaplygin_ball_omega"]
@@ -56,19 +57,19 @@ def chaplygin_ball_omega(m_vec, gamma, p: ChaplyginBallParameters):
     d = p.mass * p.radius**2
     a = 1.0 / (p.inertia + d)
     am, ag = a * m_vec, a * gamma
-    return am + d * jnp.dot(gamma, am) / (1 - d * jnp.dot(gamma, ag)) * ag
+    return am + d * matmul(gamma, am) / (1 - d * matmul(gamma, ag)) * ag
 
 
 def chaplygin_ball_measure(y, p: ChaplyginBallParameters):
     """``(1 − D(γ, Aγ))^{−1/2}``: the invariant measure in ``(M, γ)``."""
     d = p.mass * p.radius**2
     gamma = y[3:6] / jnp.linalg.norm(y[3:6])
-    return (1 - d * jnp.dot(gamma, gamma / (p.inertia + d))) ** -0.5
+    return (1 - d * matmul(gamma, gamma / (p.inertia + d))) ** -0.5
 
 
 def _energy(t, y, p):
     gamma = y[3:6] / jnp.linalg.norm(y[3:6])
-    return 0.5 * jnp.dot(y[:3], chaplygin_ball_omega(y[:3], gamma, p))
+    return 0.5 * matmul(y[:3], chaplygin_ball_omega(y[:3], gamma, p))
 
 
 def _drift(t, y, p):
