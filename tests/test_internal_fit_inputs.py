@@ -369,3 +369,40 @@ def test_the_command_prints_each_step_on_a_terminal_only(monkeypatch):
     assert show is not None
     show(3, 29.29, {"eps": 0.697, "nu": 1.28})
     assert sys.stderr.getvalue() == "fit step   3: chi2/2 = 29.29  eps = 0.697  nu = 1.28\n"
+
+
+# --- the loss's gradient in forward mode -----------------------------------------------------------------------
+
+
+def test_the_loss_gradient_in_forward_mode_equals_reverse_mode_under_every_transform():
+    """``_gradient_in_forward_mode(f)`` has ``f``'s value, and its ``jax.grad`` is ``f``'s analytic gradient, under
+    ``jit``, ``vmap`` and ``value_and_grad``, also where only the derivative is returned."""
+    from nhsde.fit._estimate import _gradient_in_forward_mode
+
+    def f(phi):
+        return jnp.sin(phi[0]) * jnp.exp(phi[1]) + phi[2] ** 3
+
+    def exact(phi):
+        return jnp.stack([jnp.cos(phi[0]) * jnp.exp(phi[1]), jnp.sin(phi[0]) * jnp.exp(phi[1]), 3 * phi[2] ** 2])
+
+    g = _gradient_in_forward_mode(f)
+    phis = jnp.asarray([[0.3, -0.2, 1.5], [1.1, 0.4, -0.7]])
+    np.testing.assert_allclose(jax.jit(jax.vmap(jax.grad(g)))(phis), jax.vmap(exact)(phis), rtol=1e-13)
+    value, grad = jax.jit(jax.value_and_grad(g))(phis[0])
+    assert float(value) == pytest.approx(float(f(phis[0])), rel=1e-15)
+    np.testing.assert_allclose(grad, exact(phis[0]), rtol=1e-13)
+
+
+def test_a_fit_is_the_same_with_its_gradient_in_forward_or_reverse_mode(paths, monkeypatch):
+    """The fit of two parameters (forward mode) and the same fit with reverse mode forced agree to the optimiser's
+    tolerance: the same estimates within 1e-3 of their standard errors, the same χ²."""
+    from nhsde.fit import _estimate
+
+    observed = fit.Observations.from_paths(TS, paths, NAMES)
+    start = BallOnVibratingPlane(eps=0.4, nu=0.8).build()
+    forward = fit.estimate(start, observed, fit.ClosedForm(ball_closed_form))
+    monkeypatch.setattr(_estimate, "FORWARD_MODE_UP_TO", 0)
+    reverse = fit.estimate(start, observed, fit.ClosedForm(ball_closed_form))
+    assert forward.converged and reverse.converged
+    np.testing.assert_allclose(forward.values, reverse.values, atol=1e-3 * float(np.min(forward.se)))
+    assert forward.chi2 == pytest.approx(reverse.chi2, rel=1e-6)
