@@ -29,6 +29,7 @@ import numpy as np
 
 from .._misc import is_concrete
 from .._params import AbstractParameters, parameter
+from ..mechanics._small import matmul
 
 __all__ = [
     "AbstractSurface",
@@ -157,7 +158,7 @@ class Ellipsoid(AbstractSurface):
 
     def _contact(self, n):
         bn = self.semi_axes**2 * n
-        return -bn / jnp.sqrt(jnp.dot(n, bn)) - self.offset
+        return -bn / jnp.sqrt(matmul(n, bn)) - self.offset
 
 
 class Disk(AbstractSurface):
