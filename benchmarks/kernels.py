@@ -74,11 +74,11 @@ def programs(scene: str, n_paths: int, steps: int):
         "jacfwd": jax.jit(jax.jacfwd(with_aux, has_aux=True)),
         "value_and_grad": jax.jit(jax.value_and_grad(f, has_aux=True)),
     }
-    return {mode: p.lower(theta, key).compile().as_text() for mode, p in modes.items()}
+    return {mode: str(p.lower(theta, key).compile().as_text()) for mode, p in modes.items()}
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(description="The kernels of a step, counted from the compiled programs.")
     parser.add_argument("--scenes", default="ball,sleigh,chaplygin-ball")
     parser.add_argument("--paths", type=int, default=4096)
     parser.add_argument("--steps", type=int, default=1000)
