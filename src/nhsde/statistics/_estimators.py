@@ -30,6 +30,7 @@ from ._control_variate import control_variate as linearised_control_variate
 from ._cost import MAX_REFINEMENTS, allocate, best_single, bias, level_cost, multilevel_plan, whole_pieces
 from ._estimate import AbstractEstimate, AbstractStatistic
 from ._extrapolation import extrapolate
+from ._martingale import check_martingale_solver
 from ._multilevel import MultilevelEstimate, multilevel_monte_carlo
 from ._multilevel_qmc import RUN_LIMIT, quasi_monte_carlo_to_variance
 from ._paths import KEY_PATHS, RUN_PATHS, solve_paths
@@ -86,7 +87,7 @@ class Pricing:
     pilot_keys: dict[str, int]  # per solver label, the index its pilot key is folded with
     antithetic_pilots: frozenset[str]  # the solver labels whose pilots also run the reflected paths
     pilots: dict[str, PilotSummary] = dataclasses.field(default_factory=dict)
-    control_pilots: dict[tuple[str, bool], ControlPilot] = dataclasses.field(default_factory=dict)
+    control_pilots: dict[tuple[str, bool, str], ControlPilot] = dataclasses.field(default_factory=dict)
 
     @property
     def h0(self) -> float:
@@ -115,10 +116,11 @@ class Pricing:
             )
         return self.pilots[cand.label]
 
-    def control_pilot(self, cand: Candidate, antithetic: bool) -> tuple[ControlPilot, float]:
-        """The controlled pilot of ``cand`` (:class:`ControlPilot`; run on first use, raises where its paths fail)
-        and the path-steps it took now (0 when it had run)."""
-        label = (cand.label, antithetic)
+    def control_pilot(self, cand: Candidate, antithetic: bool, control: str = "mean") -> tuple[ControlPilot, float]:
+        """The pilot of ``cand`` with ``control`` (``'mean'``: the linearised system, ``'martingale'``; a
+        :class:`ControlPilot`, run on first use, raises where its paths fail) and the path-steps it took now (0 when
+        it had run)."""
+        label = (cand.label, antithetic, control)
         if label in self.control_pilots:
             return self.control_pilots[label], 0.0
 
@@ -131,7 +133,7 @@ class Pricing:
                 run=self.run_at(self.h0, cand.solver),
                 weak_order=cand.order,
                 antithetic=antithetic,
-                control="mean",
+                control=control,
                 piece_paths=self.pilot_paths,
                 statistic=self.statistic,
             )
@@ -192,7 +194,7 @@ class AbstractEstimator(abc.ABC):
     solver: str | dfx.AbstractSolver
     weak_order: int | None
     antithetic: bool
-    control: bool = False  # the linearised system as a control variate inside it (where it has the field)
+    control: bool | str = False  # the linearised system as a control variate inside it (where it has the field)
     method: str  # its name in the report
 
     def __call__(
@@ -236,7 +238,8 @@ class AbstractEstimator(abc.ABC):
 
     @property
     def name(self) -> str:
-        extras = (", antithetic" if self.antithetic else "") + (", control variate" if self.control else "")
+        control = {False: "", "martingale": ", martingale control"}.get(self.control, ", control variate")
+        extras = (", antithetic" if self.antithetic else "") + control
         return f"{self.method}, {self.candidate.label}{extras}"
 
     @property
@@ -256,6 +259,8 @@ class AbstractEstimator(abc.ABC):
             check_reflectable(system.noise, repr(self))
         if self.control and not system.noise.continuous:
             raise ValueError(f"{self!r}: the control variate needs a Wiener driver here (a Gaussian control).")
+        if self.control == "martingale":
+            check_martingale_solver(self.solver)
 
     def applies(self, pricing: Pricing) -> str | None:
         """Why it does not apply at this step (``None`` where it does)."""
@@ -371,26 +376,37 @@ class Multilevel(AbstractEstimator):
     whose bias bound ``b = |C| h_L^p < ε`` costs least with the variance ``ε² − b²`` (:func:`._cost.multilevel_plan`),
     ``V_ℓ`` beyond the pilot decaying at its rate, ``N_ℓ ∝ √(V_ℓ/C_ℓ)``, in whole pieces; run
     with that allocation fixed (an allocation adapted from its own samples stops early on low variance estimates,
-    biasing a covariance low).  ``control``: every level also solves the linearised system as a control variate
-    (``control='mean'``), priced from the controlled pilot (:class:`ControlPilot`)."""
+    biasing a covariance low).  ``control``: ``True``: every level also solves the linearised system as a control
+    variate (``control='mean'``); ``'martingale'``: every level's paths carry the martingale control of the mean
+    (Euler or weak order 2); either priced from its controlled pilot (:class:`ControlPilot`)."""
 
     solver: str | dfx.AbstractSolver = "euler"
     weak_order: int | None = None
     antithetic: bool = False
-    control: bool = False
+    control: bool | str = False
     method: str = dataclasses.field(default="multilevel", init=False, repr=False)
+
+    def __post_init__(self):
+        if self.control not in (False, True, "martingale"):
+            raise ValueError(f"control={self.control!r}; allowed: False, True (the linearised system) or 'martingale'.")
 
     @property
     def own_pilot(self) -> bool:
-        return self.control
+        return bool(self.control)
+
+    @property
+    def control_kind(self) -> str | None:
+        """The ``control=`` of :func:`~nhsde.statistics.multilevel_monte_carlo`."""
+        return "martingale" if self.control == "martingale" else "mean" if self.control else None
 
     def _levels(self, pricing: Pricing) -> tuple[tuple[float, ...], float, float, float]:
         """``(V_ℓ, |C| bound, κ, pilot work done now)``: the solver's pilot (``κ = 1``), or with the control the
         controlled one."""
-        if not self.control:
+        kind = self.control_kind
+        if kind is None:
             p = pricing.pilot(self.candidate)
             return _variances(p, self.antithetic)[2], p.bias_bound, 1.0, 0.0
-        pilot, work = pricing.control_pilot(self.candidate, self.antithetic)
+        pilot, work = pricing.control_pilot(self.candidate, self.antithetic, kind)
         return pilot.level_variances, pilot.bias_bound, pilot.kappa, work
 
     def predict(self, pricing: Pricing) -> AccuracyAlternative:
@@ -407,7 +423,7 @@ class Multilevel(AbstractEstimator):
             pricing.h0,
             self.antithetic,
             pricing.pilot_paths,
-            control=self.control,
+            control=bool(self.control),
         )
         note = f"{n_levels} levels" if n_levels else "too many levels"
         return AccuracyAlternative(
@@ -431,7 +447,7 @@ class Multilevel(AbstractEstimator):
             run=pricing.run_at(plan.dt, self.solver),
             weak_order=self.candidate.order,
             antithetic=self.antithetic,
-            control="mean" if self.control else None,
+            control=self.control_kind,
             piece_paths=plan.piece_paths,
             statistic=pricing.statistic,
             wrt=pricing.tangents,

@@ -60,7 +60,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._ensemble import Save
-from .._misc import check_key, check_number, is_concrete
+from .._misc import check_key, check_number, fold_key, is_concrete
 from .._options import AbstractSteps, Batching, RunOptions, run_options
 from .._solvers import solver_needs
 from .._system import StateLayout, StochasticSystem
@@ -72,6 +72,7 @@ from ._paths import (
     RUN_PATHS,
     array_module,
     checked_paths,
+    coupled_paths,
     on_device,
     paired_moments,
     paths_save,
@@ -82,11 +83,12 @@ from ._paths import (
 )
 from ._sensitivities import check_wrt
 
-__all__ = ["martingale_control_variate", "martingale_system"]
+__all__ = ["MartingaleControl", "martingale_control_variate", "martingale_system"]
 
 _CONTROL = "@martingale"
 _BASES = ("linear", "quadratic", "cubic")
 _RCOND = 1e-10  # relative cut-off of the standardised Gram matrix's eigenvalues
+_PILOT_FOLD = 1 << 30  # the key of a multilevel control's pilot: fold_key(key, level) drives level ℓ's paths
 
 
 # ----------------------------------------------------------------------------- the basis and the augmented system
@@ -362,7 +364,7 @@ def martingale_system(
 # ----------------------------------------------------------------------------- the fit and the estimate
 
 
-def _check_solver(solver):
+def check_martingale_solver(solver):
     euler = (isinstance(solver, str) and solver == "euler") or type(solver) is dfx.Euler
     weak = (isinstance(solver, str) and solver == "weak2") or isinstance(solver, PlatenWeak2)
     if not (euler or weak):
@@ -481,6 +483,71 @@ def _reduction(plain, controlled):
     return xp.where(controlled > 0, plain / xp.where(controlled > 0, controlled, 1.0), xp.where(plain > 0, xp.inf, 1.0))
 
 
+class MartingaleControl:
+    """The martingale control on every level of multilevel Monte Carlo (``control='martingale'``): each saved mean
+    entry ``Y`` after ``t0`` gets ``M̃ = Σₙ Z(tₙ, Xₙ)·ΔWₙ``, ``Z = β·ψ`` fitted (:func:`fit_coefficients`) on
+    ``n_pilot`` independent paths at the coarsest step ``h₀``, then held fixed.  Every level's fine and coarse
+    paths carry their own ``M̃`` on their own increments (:func:`fitted_system`): each has mean exactly zero for its
+    discretisation, so the levels telescope to ``E[Y_L − M̃_L] = E Y_L`` with no term to add at level 0.  In the
+    interface of :class:`~nhsde.statistics._control_variate.LinearisedControl` inside the levels: the control's
+    sets, the coefficients ``(1, 0)`` (the means controlled, the covariances not) and its exact moments ``(0, 0)``."""
+
+    def __init__(self, system: StochasticSystem, y0, key, run: RunOptions, n_pilot: int | None = None):
+        check_martingale_solver(run.solver)
+        assert run.save is not None and run.save.names is not None and run.save.n is not None
+        self.names, n_save, k = run.save.names, run.save.n, len(run.save.names)
+        y0 = system.state(y0, "y0")
+        augmented = martingale_system(system, y0, "quadratic", time_degree=2, t0=run.t0, t1=run.t1)
+        size = augmented.state_dim - system.state_dim
+        self.n_pilot = RUN_PATHS * max(1, math.ceil(10 * size / RUN_PATHS)) if n_pilot is None else n_pilot
+        controls = augmented.layout.names[system.state_dim :]
+        pilot_run = dataclasses.replace(run, save=Save(names=self.names + controls, n=n_save, paths=True))
+        start = jnp.concatenate([y0, jnp.zeros((size,), y0.dtype)])
+        pilot = solve_paths(augmented, start, fold_key(key, _PILOT_FOLD), pilot_run, first_path=0, n_paths=self.n_pilot)
+        self.pilot_path_steps = float(self.n_pilot * run.n_steps)
+        beta_mean = fit_coefficients(pilot[..., :k], pilot[..., k:])[0]  # (n, k, K)
+        del pilot
+        xp = array_module(beta_mean)
+        self.select = np.zeros((n_save, k, max(n_save - 1, 0) * k))  # entry (s, q) → its combination r
+        for s_, q in itertools.product(range(1, n_save), range(k)):
+            self.select[s_, q, (s_ - 1) * k + q] = 1.0
+        rows = xp.einsum("nqr,nqK->rK", self.select, beta_mean)
+        if xp is not np:
+            rows = jax.lax.stop_gradient(rows)
+        self.system = fitted_system(augmented, system.state_dim, jnp.asarray(rows, y0.dtype))
+        self.start = jnp.concatenate([y0, jnp.zeros((rows.shape[0],), y0.dtype)])
+        self.coefficient = PerEntry(mean=beta_mean, cov=xp.zeros((n_save, k, k, beta_mean.shape[-1])))
+        self.dtype = y0.dtype
+
+    def sets(self, key, run: RunOptions, **options) -> tuple[list, list]:
+        """:func:`~nhsde.statistics._paths.coupled_paths` of the system carrying ``M̃``: the system's sets, then the
+        controls' sets ``M̃`` of each entry ``(N, n, k)`` (tangents likewise)."""
+        assert run.save is not None
+        fitted = self.system.layout.names[self.start.shape[0] - self.select.shape[-1] :]
+        run = dataclasses.replace(run, save=dataclasses.replace(run.save, names=self.names + fitted))
+        paths, tangents = coupled_paths(self.system, self.start, key, run, **options)
+        k = len(self.names)
+        split = lambda z: (z[..., :k], array_module(z).einsum("nqr,...nr->...nq", self.select, z[..., k:]))  # noqa: E731
+        values, controls = zip(*map(split, paths), strict=True) if paths else ((), ())
+        out_tangents: list = []
+        if tangents:
+            t_values, t_controls = zip(*map(split, tangents), strict=True)
+            out_tangents = list(t_values) + list(t_controls)
+        return list(values) + list(controls), out_tangents
+
+    def coefficients(self):
+        """``(β_mean, β_cov)`` on the controls' sets: ``1`` on every mean (``M̃`` carries its fitted ``β``), ``0`` on
+        the covariances (not controlled)."""
+        n, k = self.select.shape[:2]
+        return np.ones((n, k)), np.zeros((n, k, k))
+
+    def exact(self, system, names, t0, t1, n_steps, n_save, wrt, on_host):
+        """The control's exact moments: zero, and so their tangents."""
+        k = len(names)
+        zeros = ((np.linspace(t0, t1, n_save), np.zeros((n_save, k)), np.zeros((n_save, k, k))),)
+        return zeros[0], (zeros[0] if wrt else None)
+
+
 def martingale_control_variate(
     system: StochasticSystem,
     y0,
@@ -536,7 +603,7 @@ def martingale_control_variate(
         batching=batching,
         brownian_dt=True,
     )
-    _check_solver(options.solver)
+    check_martingale_solver(options.solver)
     solver_needs(options.solver, system)
     y0 = system.state(y0, "y0")
     n_steps = options.n_steps

@@ -56,6 +56,7 @@ from .._weak import PlatenWeak2
 from ._control_variate import LinearisedControl, PerEntry, fitted_controls
 from ._cost import MAX_LEVELS, allocate, check_memory, level_cost, level_piece, path_bytes, peak_bytes
 from ._estimate import AbstractEstimate, AbstractStatistic, Cost, Derivatives, Stopwatch, Values, as_statistic
+from ._martingale import MartingaleControl
 from ._paths import (
     array_module,
     checked_paths,
@@ -114,7 +115,7 @@ class _Levels:
         self.options, self.names, self.n_save = run, run.save.names, run.save.n  # at h0, the paths kept
         self.wrt = wrt
         self.h0, self.steps0, self.piece_paths, self.antithetic = run.dt, run.n_steps, piece_paths, antithetic
-        self.control: LinearisedControl | None = control
+        self.control: LinearisedControl | MartingaleControl | None = control
         self.paths: list[list[list[Array]]] = []  # level → run → sets
         self.tangents: list[list[list[Array]]] = []  # the same, their tangents in wrt (empty without)
         self._fitted: tuple[int, tuple] | None = None  # (level-0 count, (β_mean, β_cov)) of the control
@@ -144,6 +145,8 @@ class _Levels:
             wrt=self.wrt,
         )
         key = fold_key(self.key, level)  # the control is driven by the same Brownian path
+        if isinstance(self.control, MartingaleControl):  # the system carries the control's components
+            return self.control.sets(key, self.options, **options)
         paths, tangents = coupled_paths(*self.args, key, self.options, **options)
         if self.control is not None:
             c, t = coupled_paths(self.control.system, self.control.start, key, self.options, **options)
@@ -178,6 +181,8 @@ class _Levels:
         """``(β_mean, β_cov)`` of the control, fitted on level 0's samples (the control's module) and used on every
         level, so that the levels telescope to ``E[Y_L − β C_L]``."""
         assert self.control is not None
+        if isinstance(self.control, MartingaleControl):
+            return self.control.coefficients()
         if self._fitted is None or self._fitted[0] != self.count(0):
             sets, w = self._sets(0), self.weights(0)
             half = len(w)
@@ -275,6 +280,11 @@ def multilevel_monte_carlo(
       ``E[P_L] + β E C = E Y_L − β (E C_L − E C)`` with ``E C`` exact: the bias is ``bias(Y_L) − β bias(C_L)``, as
       for the plain control variate, and the level variances shrink where the linearisation explains the
       paths (level 0 above all).  Twice the path-steps (``level_costs``); ``coefficient`` holds ``β``.
+      ``'martingale'``: every level's paths carry the martingale control of each saved mean
+      (:func:`~nhsde.statistics.martingale_control_variate`, Euler or weak order 2), fitted once on an independent
+      pilot at ``h₀`` (its paths counted in ``cost``): each discretisation's control has mean exactly zero, so the
+      bias is the solver's and the variances of the means fall on every level; covariances are not controlled.
+      ``level_costs`` counted as with ``'mean'``; ``coefficient`` holds the fitted ``β`` (trailing axis: the basis).
     - ``piece_paths``: the smallest run on level 0 (halved per level, at least 64): samples are added in
       multiples of it.
     - ``max_levels``: the most levels to add before giving up.
@@ -314,9 +324,16 @@ def multilevel_monte_carlo(
     statistic.check(save.names)
     key = check_key(key)
     wrt = () if wrt is None else check_wrt(system, wrt)
-    linearised = None
-    if control is not None:
-        linearised = LinearisedControl(system, system.state(y0, "y0"), control, save.names, "control")
+    control_model: LinearisedControl | MartingaleControl | None = None
+    if isinstance(control, str) and control not in ("mean", "martingale"):
+        raise ValueError(
+            f"control={control!r}; allowed: 'mean' (the linearised system about the noiseless motion), a reference "
+            f"state of shape ({system.state_dim},) for it, or 'martingale' (the martingale control of the means)."
+        )
+    if isinstance(control, str) and control == "martingale":
+        control_model = MartingaleControl(system, y0, key, dataclasses.replace(run, save=save))
+    elif control is not None:
+        control_model = LinearisedControl(system, system.state(y0, "y0"), control, save.names, "control")
     levels = _Levels(
         system,
         y0,
@@ -325,7 +342,7 @@ def multilevel_monte_carlo(
         antithetic=antithetic,
         piece_paths=piece_paths,
         wrt=wrt,
-        control=linearised,
+        control=control_model,
     )
 
     if n_paths is not None:
@@ -364,6 +381,11 @@ def multilevel_monte_carlo(
         )
         derivatives = Derivatives(d_mean, d_cov, safe_sqrt(d_mean_var), safe_sqrt(d_cov_var), wrt)
     level_costs = tuple(levels.cost(level) for level in range(len(counts)))
+    fit_path_steps, coefficient = 0.0, None
+    if isinstance(control_model, MartingaleControl):
+        fit_path_steps, coefficient = control_model.pilot_path_steps, control_model.coefficient
+    elif control_model is not None:
+        coefficient = PerEntry(*levels.coefficients())
     estimate = MultilevelEstimate(
         ts=np.linspace(run.t0, run.t1, mean.shape[0]),
         mean=mean,
@@ -380,9 +402,9 @@ def multilevel_monte_carlo(
         level_costs=level_costs,
         dt=h0,
         derivatives=derivatives,
-        cost=watch.cost(sum(n * c for n, c in zip(counts, level_costs))),
+        cost=watch.cost(sum(n * c for n, c in zip(counts, level_costs)) + fit_path_steps),
         statistic=statistic,
-        coefficient=None if linearised is None else PerEntry(*levels.coefficients()),
+        coefficient=coefficient,
     )
     return on_device(estimate, levels.paths[0][0][0].dtype)
 
