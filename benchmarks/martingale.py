@@ -12,13 +12,23 @@ For the Chaplygin sleigh (``E[x² + y²](2)``, no closed form, and ``E[H](2)``) 
    ``martingale_control_variate`` (pilot of the default ``10 K`` paths with all ``K`` controls, fit, and the run
    with the fitted combinations only).
 
+With ``--accuracy`` it times :func:`~nhsde.statistics.to_accuracy` at relative RMSE ``--rmse`` (default 1e-2 and
+1e-3) on the cases above and the body on the vibrating plane (``E[θ](1)``, its tilt, no closed form, and ``E[H](1)``),
+with five sets of estimators (``--sets``, :func:`estimator_sets`): plain Monte Carlo with each default solver (the
+best plain setting), :class:`~nhsde.statistics.MartingaleControlVariate` with each, multilevel with the control on
+every level (``Multilevel(solver, control='martingale')``) with each, the default set, and the default set with the
+control.  It times the first call in this process (compilation included; programs the cases share are
+compiled once) and the warm one, the sets alternating, with each set's choice, value, standard error and work.
+``--fresh`` times instead the first answer in a fresh process per call (imports excluded).
+
 With ``--honesty`` it checks the standard errors instead (issue 36's honesty targets), for the no-closed-form
 statistics with the weak scheme: the z-scores ``(estimate − reference)/SE`` of ``--keys`` independent estimates of
 4096 paths, and those of their derivatives in ε and ν (``wrt``), against a reference of the same estimator on 2¹⁷
 paths of another key.  The reference's own error is common to every key: it shifts the z-scores' mean, not their
 standard deviation, whose target is [0.8, 1.25] (sampling band over 16 keys: about ±18 %).
 
-Writes ``results/martingale.json`` (``results/martingale-honesty.json``).
+Writes ``results/martingale.json`` (``results/martingale-honesty.json``, ``results/martingale-accuracy.json``,
+``results/martingale-first-answer.json``).
 """
 
 from __future__ import annotations
@@ -27,6 +37,8 @@ import argparse
 import dataclasses
 import json
 import pathlib
+import subprocess
+import sys
 import time
 
 import jax
@@ -34,8 +46,16 @@ import numpy as np
 
 jax.config.update("jax_enable_x64", True)
 import nhsde  # noqa: E402
-from nhsde.scenes import ChaplyginBall, ChaplyginSleigh  # noqa: E402
-from nhsde.statistics import Mean, martingale_control_variate  # noqa: E402
+from nhsde.scenes import BodyOnVibratingPlane, ChaplyginBall, ChaplyginSleigh  # noqa: E402
+from nhsde.statistics import (  # noqa: E402
+    MartingaleControlVariate,
+    Mean,
+    Multilevel,
+    PlainMonteCarlo,
+    martingale_control_variate,
+    to_accuracy,
+)
+from nhsde.statistics._accuracy import default_estimators  # noqa: E402  (to_accuracy's own default set)
 
 OUT = pathlib.Path(__file__).parent / "results"
 
@@ -55,6 +75,110 @@ def cases():
         ("chaplygin-ball", ball.build(), ball.initial_state(), "gamma_3", 1.0, 0.0625),
         ("chaplygin-ball", ball.build(), ball.initial_state(), "energy", 1.0, 0.0625),
     ]
+
+
+def body_cases():
+    body = BodyOnVibratingPlane(eps=0.5, nu=1.0)
+    y0 = body.initial_state().astype(jax.numpy.float64)
+    return [("body", body.build(), y0, "theta", 1.0, 0.125), ("body", body.build(), y0, "energy", 1.0, 0.125)]
+
+
+def usable(system, estimators):
+    """Those that can run on ``system`` (the control needs Euler or weak order 2)."""
+    out = []
+    for e in estimators:
+        try:
+            e.check(system)
+            out.append(e)
+        except ValueError:
+            pass
+    return tuple(out)
+
+
+def estimator_sets(system):
+    """The sets compared: plain Monte Carlo with each default solver (the best plain setting), the control alone with
+    each, multilevel with the control on every level with each, the default set, and the default set with the
+    control alone; all but the default set priced whole (``explore=True``)."""
+    default, _ = default_estimators(system)
+    solvers = list(dict.fromkeys(e.candidate.solver for e in default))
+    mcv = tuple(MartingaleControlVariate(s) for s in solvers)
+    return {
+        "plain": tuple(PlainMonteCarlo(s) for s in solvers),
+        "MCV": mcv,
+        "MLMC + M": usable(system, [Multilevel(s, control="martingale") for s in solvers]),
+        "default": tuple(default),
+        "default + MCV": (*default, *mcv),
+    }
+
+
+def accuracy_call(case, set_name, rmse):
+    scene, system, y0, name, t1, dt = case
+    start = time.perf_counter()
+    res = to_accuracy(
+        system,
+        y0,
+        jax.random.key(3),
+        statistic=("mean", name),
+        t1=t1,
+        relative_rmse=rmse,
+        save=nhsde.Save(names=(name,), n=2),
+        estimators=estimator_sets(system)[set_name],
+        explore=set_name != "default",
+    )
+    seconds = time.perf_counter() - start
+    value, se = res.value()
+    return dict(
+        scene=scene,
+        statistic=f"E[{name}]({t1:g})",
+        rmse=rmse,
+        set=set_name,
+        seconds=seconds,
+        choice=res.choice,
+        value=float(value),
+        se=float(se),
+        bias=float(res.bias),
+        run_path_steps=float(res.run_cost.path_steps),
+        pilot_path_steps=float(res.pilot_cost.path_steps),
+        alternatives=[
+            dict(name=a.name, cost=a.cost, dt=a.dt, n_paths=list(a.n_paths), kappa=a.kappa, note=a.note[:120])
+            for a in res.alternatives
+            if a.applies or a.name.startswith(("martingale", res.choice))
+        ],
+    )
+
+
+def accuracy(rmses, names, sets, fresh):
+    rows = []
+    chosen = [c for c in cases() + body_cases() if c[0] in names]
+    for case in chosen:
+        for rmse in rmses:
+            for round_ in ("first", "warm") if not fresh else ("fresh 1", "fresh 2"):
+                for set_name in sets:
+                    if fresh:
+                        out = subprocess.run(
+                            [sys.executable, __file__, "--one", case[0], case[3], str(rmse), set_name],
+                            check=True,
+                            capture_output=True,
+                            text=True,
+                        ).stdout
+                        row = json.loads(out.splitlines()[-1])
+                    else:
+                        row = accuracy_call(case, set_name, rmse)
+                    row["round"] = round_
+                    rows.append(row)
+                    print(
+                        f"{row['scene']:15s} {row['statistic']:12s} {rmse:g} {round_:7s} {set_name:14s} "
+                        f"{row['seconds']:7.1f} s  {row['choice']:60.60s} {row['value']:.6g} ± {row['se']:.2g}  "
+                        f"work {row['run_path_steps']:.3g} + pilot {row['pilot_path_steps']:.3g}",
+                        flush=True,
+                    )
+                    for a in row["alternatives"]:
+                        if a["name"].startswith("martingale") or a["name"] == row["choice"]:
+                            plan = f"{a['cost']:.3g} dt {a['dt']:g} κ {a['kappa']:.2f}"
+                            print(f"    {a['name']:50.50s} {plan} {a['note'][:50]}")
+    OUT.mkdir(exist_ok=True)
+    name = "martingale-first-answer.json" if fresh else "martingale-accuracy.json"
+    (OUT / name).write_text(json.dumps(rows, indent=1))
 
 
 def timed(fn, rounds):
@@ -112,7 +236,20 @@ def main():
     parser.add_argument("--solvers", default="euler,weak2")
     parser.add_argument("--honesty", action="store_true")
     parser.add_argument("--keys", type=int, default=16)
+    parser.add_argument("--accuracy", action="store_true")
+    parser.add_argument("--fresh", action="store_true", help="with --accuracy: a fresh process per call")
+    parser.add_argument("--rmse", default="1e-2,1e-3", help="with --accuracy: relative targets")
+    parser.add_argument("--scenes", default="sleigh,chaplygin-ball,body", help="with --accuracy")
+    parser.add_argument("--sets", default="plain,MCV,MLMC + M,default,default + MCV", help="with --accuracy")
+    parser.add_argument("--one", nargs=4, help=argparse.SUPPRESS)  # scene statistic rmse set: one call, as JSON
     args = parser.parse_args()
+    if args.one:
+        scene, name, rmse, set_name = args.one
+        case = next(c for c in cases() + body_cases() if c[0] == scene and c[3] == name)
+        return print(json.dumps(accuracy_call(case, set_name, float(rmse))))
+    if args.accuracy:
+        rmses = [float(r) for r in args.rmse.split(",")]
+        return accuracy(rmses, args.scenes.split(","), args.sets.split(","), args.fresh)
     if args.honesty:
         return honesty(args.keys)
     rows = []

@@ -484,19 +484,25 @@ def _reduction(plain, controlled):
 
 
 class MartingaleControl:
-    """The martingale control on every level of multilevel Monte Carlo (``control='martingale'``): each saved mean
-    entry ``Y`` after ``t0`` gets ``M̃ = Σₙ Z(tₙ, Xₙ)·ΔWₙ``, ``Z = β·ψ`` fitted (:func:`fit_coefficients`) on
-    ``n_pilot`` independent paths at the coarsest step ``h₀``, then held fixed.  Every level's fine and coarse
-    paths carry their own ``M̃`` on their own increments (:func:`fitted_system`): each has mean exactly zero for its
-    discretisation, so the levels telescope to ``E[Y_L − M̃_L] = E Y_L`` with no term to add at level 0.  In the
-    interface of :class:`~nhsde.statistics._control_variate.LinearisedControl` inside the levels: the control's
-    sets, the coefficients ``(1, 0)`` (the means controlled, the covariances not) and its exact moments ``(0, 0)``."""
+    """The martingale control inside multilevel Monte Carlo (``control='martingale'``): each saved mean entry ``Y``
+    after ``t0`` gets ``M̃ = Σₙ Z(tₙ, Xₙ)·ΔWₙ``, ``Z = β·ψ`` fitted (:func:`fit_coefficients`) on ``n_pilot``
+    independent paths at the coarsest step ``h₀``, then held fixed.  Each discretisation's ``M̃``, on its own
+    increments (:func:`fitted_system`), has mean exactly zero, so any level may use it or not and the levels still
+    telescope to ``E Y_L``, with no term to add at level 0.  Level 0 always does.  The level differences (fine −
+    coarse) use it per entry where it lowered the variance of the first difference ``(h₀/2, h₀)`` on another
+    ``n_pilot`` independent paths: the fine and coarse controls differ at the scheme's strong order, which can add
+    more variance than they remove (measured on Chaplygin's ball's energy with weak order 2, and on the sleigh with
+    Euler); where no entry uses it there, those levels solve the system alone.  In the interface of
+    :class:`~nhsde.statistics._control_variate.LinearisedControl` inside the levels: the control's sets, the
+    coefficients per level (``1`` or ``0`` on each mean, ``0`` on the covariances, not controlled) and its exact
+    moments ``(0, 0)``."""
 
     def __init__(self, system: StochasticSystem, y0, key, run: RunOptions, n_pilot: int | None = None):
         check_martingale_solver(run.solver)
         assert run.save is not None and run.save.names is not None and run.save.n is not None
         self.names, n_save, k = run.save.names, run.save.n, len(run.save.names)
-        y0 = system.state(y0, "y0")
+        self.plain, y0 = system, system.state(y0, "y0")
+        self.y0 = y0
         augmented = martingale_system(system, y0, "quadratic", time_degree=2, t0=run.t0, t1=run.t1)
         size = augmented.state_dim - system.state_dim
         self.n_pilot = RUN_PATHS * max(1, math.ceil(10 * size / RUN_PATHS)) if n_pilot is None else n_pilot
@@ -504,7 +510,6 @@ class MartingaleControl:
         pilot_run = dataclasses.replace(run, save=Save(names=self.names + controls, n=n_save, paths=True))
         start = jnp.concatenate([y0, jnp.zeros((size,), y0.dtype)])
         pilot = solve_paths(augmented, start, fold_key(key, _PILOT_FOLD), pilot_run, first_path=0, n_paths=self.n_pilot)
-        self.pilot_path_steps = float(self.n_pilot * run.n_steps)
         beta_mean = fit_coefficients(pilot[..., :k], pilot[..., k:])[0]  # (n, k, K)
         del pilot
         xp = array_module(beta_mean)
@@ -517,35 +522,47 @@ class MartingaleControl:
         self.system = fitted_system(augmented, system.state_dim, jnp.asarray(rows, y0.dtype))
         self.start = jnp.concatenate([y0, jnp.zeros((rows.shape[0],), y0.dtype)])
         self.coefficient = PerEntry(mean=beta_mean, cov=xp.zeros((n_save, k, k, beta_mean.shape[-1])))
-        self.dtype = y0.dtype
+        self.finer = np.ones((n_save, k))  # the level differences' use of the control, per mean entry
+        h0 = run.dt
+        first = dict(dts=(h0 / 2, h0), brownian_dt=h0 / 2, n_paths=self.n_pilot, antithetic=False)
+        (fine, coarse, m_fine, m_coarse), _ = self.sets(1, fold_key(key, _PILOT_FOLD + 1), run, **first)
+        xp = array_module(fine)  # traced under jax transformations: then every level solves the control
+        plain_var = xp.var(fine - coarse, axis=0)
+        controlled_var = xp.var((fine - m_fine) - (coarse - m_coarse), axis=0)
+        self.finer = xp.where(controlled_var < plain_var, 1.0, 0.0)
+        self.pilot_path_steps = float(self.n_pilot * run.n_steps * (1 + 2 + 1))  # the fit; the first difference
 
-    def sets(self, key, run: RunOptions, **options) -> tuple[list, list]:
-        """:func:`~nhsde.statistics._paths.coupled_paths` of the system carrying ``M̃``: the system's sets, then the
-        controls' sets ``M̃`` of each entry ``(N, n, k)`` (tangents likewise)."""
+    def sets(self, level: int, key, run: RunOptions, **options) -> tuple[list, list]:
+        """:func:`~nhsde.statistics._paths.coupled_paths` of level ``level``: the system's sets, then the controls'
+        sets ``M̃`` of each entry ``(N, n, k)`` (tangents likewise); zeros where the level does not use them."""
         assert run.save is not None
+        k = len(self.names)
+        if level and is_concrete(self.finer) and not np.any(self.finer):  # no difference uses it: the system alone
+            paths, tangents = coupled_paths(self.plain, self.y0, key, run, **options)
+            xp = array_module(paths)
+            return paths + [xp.zeros_like(z) for z in paths], tangents + [xp.zeros_like(t) for t in tangents]
         fitted = self.system.layout.names[self.start.shape[0] - self.select.shape[-1] :]
         run = dataclasses.replace(run, save=dataclasses.replace(run.save, names=self.names + fitted))
         paths, tangents = coupled_paths(self.system, self.start, key, run, **options)
-        k = len(self.names)
         split = lambda z: (z[..., :k], array_module(z).einsum("nqr,...nr->...nq", self.select, z[..., k:]))  # noqa: E731
-        values, controls = zip(*map(split, paths), strict=True) if paths else ((), ())
+        values, controls = zip(*map(split, paths), strict=True)
         out_tangents: list = []
         if tangents:
             t_values, t_controls = zip(*map(split, tangents), strict=True)
             out_tangents = list(t_values) + list(t_controls)
         return list(values) + list(controls), out_tangents
 
-    def coefficients(self):
-        """``(β_mean, β_cov)`` on the controls' sets: ``1`` on every mean (``M̃`` carries its fitted ``β``), ``0`` on
-        the covariances (not controlled)."""
+    def coefficients(self, level: int):
+        """``(β_mean, β_cov)`` on level ``level``'s control sets: ``1`` on every mean at level 0 (``M̃`` carries its
+        fitted ``β``), on the level differences ``1`` where the control pays there, else ``0``; ``0`` on the
+        covariances (not controlled)."""
         n, k = self.select.shape[:2]
-        return np.ones((n, k)), np.zeros((n, k, k))
+        return (self.finer if level else np.ones((n, k))), np.zeros((n, k, k))
 
     def exact(self, system, names, t0, t1, n_steps, n_save, wrt, on_host):
         """The control's exact moments: zero, and so their tangents."""
-        k = len(names)
-        zeros = ((np.linspace(t0, t1, n_save), np.zeros((n_save, k)), np.zeros((n_save, k, k))),)
-        return zeros[0], (zeros[0] if wrt else None)
+        zeros = (np.linspace(t0, t1, n_save), np.zeros((n_save, len(names))), np.zeros((n_save,) + (len(names),) * 2))
+        return zeros, (zeros if wrt else None)
 
 
 def martingale_control_variate(

@@ -146,7 +146,7 @@ class _Levels:
         )
         key = fold_key(self.key, level)  # the control is driven by the same Brownian path
         if isinstance(self.control, MartingaleControl):  # the system carries the control's components
-            return self.control.sets(key, self.options, **options)
+            return self.control.sets(level, key, self.options, **options)
         paths, tangents = coupled_paths(*self.args, key, self.options, **options)
         if self.control is not None:
             c, t = coupled_paths(self.control.system, self.control.start, key, self.options, **options)
@@ -177,12 +177,12 @@ class _Levels:
         xp = array_module(self.paths[level])
         return [xp.concatenate(parts) for parts in zip(*self.paths[level], strict=True)]
 
-    def coefficients(self):
+    def coefficients(self, level: int = 0):
         """``(β_mean, β_cov)`` of the control, fitted on level 0's samples (the control's module) and used on every
-        level, so that the levels telescope to ``E[Y_L − β C_L]``."""
+        level, so that the levels telescope to ``E[Y_L − β C_L]``; the martingale control's, per level."""
         assert self.control is not None
         if isinstance(self.control, MartingaleControl):
-            return self.control.coefficients()
+            return self.control.coefficients(level)
         if self._fitted is None or self._fitted[0] != self.count(0):
             sets, w = self._sets(0), self.weights(0)
             half = len(w)
@@ -196,7 +196,7 @@ class _Levels:
         w = self.weights(level)
         if self.control is None:
             return w, w
-        beta_m, beta_c = self.coefficients()
+        beta_m, beta_c = self.coefficients(level)
         return w + [-beta_m * x for x in w], w + [-beta_c * x for x in w]
 
     def exact(self):
