@@ -283,7 +283,9 @@ def multilevel_monte_carlo(
       ``'martingale'``: every level's paths carry the martingale control of each saved mean
       (:func:`~nhsde.statistics.martingale_control_variate`, Euler or weak order 2), fitted once on an independent
       pilot at ``h₀`` (its paths counted in ``cost``): each discretisation's control has mean exactly zero, so the
-      bias is the solver's and the variances of the means fall on every level; covariances are not controlled.
+      bias is the solver's; level 0 uses it, the level differences per mean entry where it lowered the first
+      difference's variance on another independent pilot; covariances
+      are not controlled.
       ``level_costs`` counted as with ``'mean'``; ``coefficient`` holds the fitted ``β`` (trailing axis: the basis).
     - ``piece_paths``: the smallest run on level 0 (halved per level, at least 64): samples are added in
       multiples of it.
