@@ -63,6 +63,7 @@ from estimators import BODY_REFERENCE, CASES  # noqa: E402
 import nhsde  # noqa: E402
 from nhsde.statistics import (  # noqa: E402
     ControlVariate,
+    MartingaleControlVariate,
     Multilevel,
     MultilevelQuasiMonteCarlo,
     PlainMonteCarlo,
@@ -99,6 +100,8 @@ def estimator_objects():
         "multilevel-weak2-control": Multilevel(GAUSS, control=True),
         "qmc-weak2-control": QuasiMonteCarlo(GAUSS, control=True),
         "mlqmc-weak2-control": MultilevelQuasiMonteCarlo(GAUSS, control=True),
+        "martingale-weak2": MartingaleControlVariate(GAUSS),
+        "multilevel-weak2-martingale": Multilevel(GAUSS, control="martingale"),
     }
 
 
