@@ -24,11 +24,20 @@ compiled once) and the warm one, the sets alternating, with each set's choice, v
 With ``--honesty`` it checks the standard errors instead (issue 36's honesty targets), for the no-closed-form
 statistics with the weak scheme: the z-scores ``(estimate − reference)/SE`` of ``--keys`` independent estimates of
 4096 paths, and those of their derivatives in ε and ν (``wrt``), against a reference of the same estimator on 2¹⁷
-paths of another key.  The reference's own error is common to every key: it shifts the z-scores' mean, not their
-standard deviation, whose target is [0.8, 1.25] (sampling band over 16 keys: about ±18 %).
+paths of another key (``--multilevel``: of multilevel with the control on every level, weak order 2 with Gaussian
+increments, levels' paths ``MULTILEVEL_PATHS``, the reference 32 times those).  The reference's own error is
+common to every key: it shifts the z-scores' mean, not their standard deviation, whose target is [0.8, 1.25]
+(sampling band over 16 keys: about ±18 %).
+
+With ``--slope`` it measures cost against RMSE on Chaplygin's ball (issue 36's slope target): adaptive
+:func:`~nhsde.statistics.multilevel_monte_carlo` (``rmse=``, weak order 2 with Gaussian increments,
+``piece_paths=256`` so that level 0's first piece does not exceed the optimal samples at the loose targets) with
+the martingale control and without, at relative RMSE ``--rmse`` (default 1e-2, 3e-3, 1e-3, 3e-4) of ``E[γ₃](1)``
+and ``E[H](1)`` (``--statistics``), and fits the slope of log path-steps on log ε: of the whole cost (the control's
+pilots included, as a user pays) and of the levels alone.
 
 Writes ``results/martingale.json`` (``results/martingale-honesty.json``, ``results/martingale-accuracy.json``,
-``results/martingale-first-answer.json``).
+``results/martingale-first-answer.json``, ``results/martingale-slope.json``).
 """
 
 from __future__ import annotations
@@ -53,11 +62,13 @@ from nhsde.statistics import (  # noqa: E402
     Multilevel,
     PlainMonteCarlo,
     martingale_control_variate,
+    multilevel_monte_carlo,
     to_accuracy,
 )
 from nhsde.statistics._accuracy import default_estimators  # noqa: E402  (to_accuracy's own default set)
 
 OUT = pathlib.Path(__file__).parent / "results"
+GAUSSIAN_WEAK2 = nhsde.PlatenWeak2(increments="gaussian")  # multilevel's coupling needs Gaussian increments
 
 
 def _r2(t, y, p):
@@ -192,27 +203,49 @@ def timed(fn, rounds):
     return best, out
 
 
-def honesty(n_keys):
+MULTILEVEL_PATHS = (4096, 1024, 256)  # --honesty --multilevel: the levels' paths per key (the reference: 16 times)
+
+
+def honest_estimate(system, y0, key, name, t1, dt, multilevel, scale):
+    """(value, SE, derivative in (ε, ν), its SEs) of the statistic: the control alone with ``4096 · scale`` paths
+    (weak2), or multilevel with the control on every level with ``MULTILEVEL_PATHS · scale`` (weak2, Gaussian)."""
+    if multilevel:
+        counts = tuple(n * scale for n in MULTILEVEL_PATHS)
+        est = multilevel_monte_carlo(
+            system, y0, key, statistic=Mean(name), n_paths=counts, t1=t1, dt=dt, solver=GAUSSIAN_WEAK2,
+            control="martingale", wrt=("eps", "nu"),
+        )  # fmt: skip
+        (value, se), (d, d_se) = est.value(), est.derivative()
+        return float(value), float(se), np.asarray(d), np.asarray(d_se)
+    run = dict(t1=t1, dt=dt, solver="weak2", wrt=("eps", "nu"))
+    est = martingale_control_variate(system, y0, key, Mean(name), n_paths=4096 * scale, **run)
+    d = est.derivatives
+    return (
+        float(est.mean[-1, 0]),
+        float(est.mean_se[-1, 0]),
+        np.asarray(d.d_mean[:, -1, 0]),
+        np.asarray(d.d_mean_se[:, -1, 0]),
+    )
+
+
+def honesty(n_keys, multilevel):
     rows = []
     for scene, system, y0, name, t1, dt in cases():
         if name == "energy":
             continue
-        run = dict(t1=t1, dt=dt, solver="weak2", wrt=("eps", "nu"))
-        ref = martingale_control_variate(system, y0, jax.random.key(10**6), Mean(name), n_paths=2**17, **run)
-        ref_value, ref_grad = float(ref.mean[-1, 0]), np.asarray(ref.derivatives.d_mean[:, -1, 0])
+        ref_value, _, ref_grad, _ = honest_estimate(system, y0, jax.random.key(10**6), name, t1, dt, multilevel, 32)
         z, z_grad = [], []
         for i in range(n_keys):
-            est = martingale_control_variate(system, y0, jax.random.key(i), Mean(name), n_paths=4096, **run)
-            z.append((float(est.mean[-1, 0]) - ref_value) / float(est.mean_se[-1, 0]))
-            d = est.derivatives
-            z_grad.append((np.asarray(d.d_mean[:, -1, 0]) - ref_grad) / np.asarray(d.d_mean_se[:, -1, 0]))
+            value, se, d, d_se = honest_estimate(system, y0, jax.random.key(i), name, t1, dt, multilevel, 1)
+            z.append((value - ref_value) / se)
+            z_grad.append((d - ref_grad) / d_se)
         z, z_grad = np.array(z), np.array(z_grad)
         row = dict(
             scene=scene,
             statistic=f"E[{name}]({t1:g})",
+            estimator="multilevel, martingale control" if multilevel else "martingale control variate",
             keys=n_keys,
             reference=ref_value,
-            reference_se=float(ref.mean_se[-1, 0]),
             z_mean=float(z.mean()),
             z_sd=float(z.std(ddof=1)),
             rmse_over_se=float(np.sqrt(np.mean(z**2))),
@@ -226,7 +259,59 @@ def honesty(n_keys):
             flush=True,
         )
     OUT.mkdir(exist_ok=True)
-    (OUT / "martingale-honesty.json").write_text(json.dumps(rows, indent=1))
+    (OUT / ("martingale-honesty-multilevel.json" if multilevel else "martingale-honesty.json")).write_text(
+        json.dumps(rows, indent=1)
+    )
+
+
+def slope(rmses, keys, statistics):
+    """Cost against RMSE (``--slope``), on Chaplygin's ball's cases; the relative target is turned absolute with a
+    reference value of the controlled estimator at the tightest target's tenth of the loosest."""
+    rows = []
+    for scene, system, y0, name, t1, dt in [c for c in cases() if c[0] == "chaplygin-ball" and c[3] in statistics]:
+        run = dict(statistic=Mean(name), t1=t1, dt=dt, solver=GAUSSIAN_WEAK2, piece_paths=256)
+        reference = multilevel_monte_carlo(
+            system, y0, jax.random.key(10**6), rmse=min(rmses) * 10, control="martingale", **run
+        )
+        scale = abs(float(reference.value()[0]))
+        for rmse in rmses:
+            for control in ("martingale", None):
+                for k in range(keys):
+                    start = time.perf_counter()
+                    est = multilevel_monte_carlo(
+                        system, y0, jax.random.key(k), rmse=rmse * scale, control=control, **run
+                    )
+                    seconds = time.perf_counter() - start
+                    levels = float(np.dot(est.n_paths_per_level, est.level_costs))
+                    row = dict(
+                        scene=scene,
+                        statistic=f"E[{name}]({t1:g})",
+                        rmse=rmse,
+                        control=control or "none",
+                        key=k,
+                        seconds=seconds,
+                        value=float(est.value()[0]),
+                        se=float(est.value()[1]),
+                        n_paths_per_level=list(est.n_paths_per_level),
+                        path_steps=float(est.cost.path_steps),
+                        level_path_steps=levels,
+                    )
+                    rows.append(row)
+                    print(
+                        f"{scene:15s} {row['statistic']:10s} {rmse:7.0e} {row['control']:10s} key {k}  "
+                        f"{seconds:7.1f} s  levels {row['n_paths_per_level']}  path-steps {row['path_steps']:.3g} "
+                        f"(levels {levels:.3g})  {row['value']:.6g} ± {row['se']:.2g}",
+                        flush=True,
+                    )
+        for control in ("martingale", "none"):
+            mine = [r for r in rows if r["statistic"] == f"E[{name}]({t1:g})" and r["control"] == control]
+            x = np.log([r["rmse"] for r in mine])
+            for what in ("path_steps", "level_path_steps"):
+                fitted = np.polyfit(x, np.log([r[what] for r in mine]), 1)[0]
+                print(f"    slope of log {what} on log ε, {control}: {fitted:.2f}", flush=True)
+    OUT.mkdir(exist_ok=True)
+    name = "martingale-slope.json" if len(statistics) == 2 else f"martingale-slope-{'-'.join(statistics)}.json"
+    (OUT / name).write_text(json.dumps(rows, indent=1))
 
 
 def main():
@@ -235,12 +320,15 @@ def main():
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--solvers", default="euler,weak2")
     parser.add_argument("--honesty", action="store_true")
+    parser.add_argument("--multilevel", action="store_true", help="with --honesty: multilevel with the control")
     parser.add_argument("--keys", type=int, default=16)
     parser.add_argument("--accuracy", action="store_true")
     parser.add_argument("--fresh", action="store_true", help="with --accuracy: a fresh process per call")
     parser.add_argument("--rmse", default="1e-2,1e-3", help="with --accuracy: relative targets")
     parser.add_argument("--scenes", default="sleigh,chaplygin-ball,body", help="with --accuracy")
     parser.add_argument("--sets", default="plain,MCV,MLMC + M,default,default + MCV", help="with --accuracy")
+    parser.add_argument("--slope", action="store_true")
+    parser.add_argument("--statistics", default="gamma_3,energy", help="with --slope")
     parser.add_argument("--one", nargs=4, help=argparse.SUPPRESS)  # scene statistic rmse set: one call, as JSON
     args = parser.parse_args()
     if args.one:
@@ -251,7 +339,10 @@ def main():
         rmses = [float(r) for r in args.rmse.split(",")]
         return accuracy(rmses, args.scenes.split(","), args.sets.split(","), args.fresh)
     if args.honesty:
-        return honesty(args.keys)
+        return honesty(args.keys, args.multilevel)
+    if args.slope:
+        rmses = [float(r) for r in args.rmse.split(",")] if args.rmse != "1e-2,1e-3" else [1e-2, 3e-3, 1e-3, 3e-4]
+        return slope(rmses, args.keys if args.keys != 16 else 2, args.statistics.split(","))
     rows = []
     for scene, system, y0, name, t1, dt in cases():
         for solver in args.solvers.split(","):
