@@ -324,10 +324,14 @@ def _run(system: StochasticSystem, needs: SolverNeeds, y0, key, first_path, grid
             return carry, (obs, bad) if keep else None
 
         start = (zeros.add_paths(obs0, valid0), tally(none_failed, bad0, 0), meter_state)
-        (sums, failures, meter_state), rest = jax.lax.scan(scan_body, start, jnp.arange(1, plan.n_chunks))
-        if rest is not None:
-            obs_all = jnp.concatenate([obs0[None], rest[0]])
-            bad_all = jnp.concatenate([bad0[None], rest[1]])
+        if plan.n_chunks == 1:  # the solve is traced once: an empty scan would trace it (and its derivatives) again
+            sums, failures, meter_state = start
+            obs_all, bad_all = obs0[None], bad0[None]
+        else:
+            (sums, failures, meter_state), rest = jax.lax.scan(scan_body, start, jnp.arange(1, plan.n_chunks))
+            if rest is not None:
+                obs_all = jnp.concatenate([obs0[None], rest[0]])
+                bad_all = jnp.concatenate([bad0[None], rest[1]])
     else:
         mesh = jax.sharding.Mesh(np.asarray(plan.devices), ("paths",))
         spec = jax.sharding.PartitionSpec("paths")
