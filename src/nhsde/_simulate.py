@@ -303,36 +303,46 @@ def _run(system: StochasticSystem, needs: SolverNeeds, y0, key, first_path, grid
 
     meter_state = meter.init()
     n_dev = len(plan.devices)
-    if n_dev == 1:
-        obs0, bad0, valid0, meter_state = run(0, plan.chunk, meter, meter_state)
-    else:  # the first block alone gives the shift before the devices start
-        obs0, bad0, valid0, _ = run(0, BLOCK, dfx.NoProgressMeter(), None)
-    if about is None:
-        # Sums are taken about the first path, a point within the spread of the
-        # ensemble, so float32 second moments do not cancel.
-        about = jax.lax.stop_gradient(jnp.where(valid0[0], obs0[0], 0.0))
-    zeros = MomentSums.zeros(about.astype(obs0.dtype))
     none_failed = (jnp.zeros((), jnp.int32), jnp.asarray(MAX_PATH_INDEX, jnp.asarray(first_path).dtype))
     keep = plan.keep_paths  # per-path values and flags are kept only when asked for
 
-    if n_dev == 1:
+    def first_shift(obs, valid):
+        # Sums are taken about the first path, a point within the spread of the
+        # ensemble, so float32 second moments do not cancel.
+        return jax.lax.stop_gradient(jnp.where(valid[0], obs[0], 0.0)) if about is None else about.astype(obs.dtype)
+
+    def observed_dtype():
+        """The observations' dtype, without tracing a solve."""
+        t, y = jnp.asarray(plan.t0, y0.dtype), y0 if y0.ndim == 1 else y0[0]
+        return jax.eval_shape(system.observe(plan.names), t, y, params).dtype
+
+    if n_dev == 1 and plan.n_chunks == 1:
+        obs0, bad0, valid0, meter_state = run(0, plan.chunk, meter, meter_state)
+        sums = MomentSums.zeros(first_shift(obs0, valid0)).add_paths(obs0, valid0)
+        failures = tally(none_failed, bad0, 0)
+        obs_all, bad_all = obs0[None], bad0[None]
+    elif n_dev == 1:  # every chunk in one loop, so the solve is traced (and differentiated) once
 
         def scan_body(carry, c):
             sums, failures, meter_state = carry
             obs, bad, valid, meter_state = run(c, plan.chunk, meter, meter_state)
+            # the shift is set by chunk 0, where the sums are still zero
+            sums = dataclasses.replace(sums, shift=jnp.where(c == 0, first_shift(obs, valid), sums.shift))
             carry = (sums.add_paths(obs, valid), tally(failures, bad, c * plan.chunk), meter_state)
             return carry, (obs, bad) if keep else None
 
-        start = (zeros.add_paths(obs0, valid0), tally(none_failed, bad0, 0), meter_state)
-        if plan.n_chunks == 1:  # the solve is traced once: an empty scan would trace it (and its derivatives) again
-            sums, failures, meter_state = start
-            obs_all, bad_all = obs0[None], bad0[None]
-        else:
-            (sums, failures, meter_state), rest = jax.lax.scan(scan_body, start, jnp.arange(1, plan.n_chunks))
-            if rest is not None:
-                obs_all = jnp.concatenate([obs0[None], rest[0]])
-                bad_all = jnp.concatenate([bad0[None], rest[1]])
+        zeros = MomentSums.zeros(jnp.zeros((plan.n_save, len(plan.names)), observed_dtype()))
+        (sums, failures, meter_state), rest = jax.lax.scan(
+            scan_body, (zeros, none_failed, meter_state), jnp.arange(plan.n_chunks)
+        )
+        if rest is not None:
+            obs_all, bad_all = rest
     else:
+        if about is None:  # the first block alone gives the shift before the devices start
+            obs0, _, valid0, _ = run(0, BLOCK, dfx.NoProgressMeter(), None)
+            zeros = MomentSums.zeros(first_shift(obs0, valid0))
+        else:
+            zeros = MomentSums.zeros(about.astype(observed_dtype()))
         mesh = jax.sharding.Mesh(np.asarray(plan.devices), ("paths",))
         spec = jax.sharding.PartitionSpec("paths")
 
