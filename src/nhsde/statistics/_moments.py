@@ -11,8 +11,9 @@ any driver.  Expectations are tensor Gauss–Hermite cubatures of ``order`` node
 per component over the components on which ``∂a/∂Z`` or ``b`` depend (``a`` is
 affine in the others: no cubature at all for a linear system, never over ``q''``
 in a Chaplygin system); the equations are solved with fixed Dopri8 steps in a
-``lax.scan``, so results are differentiable in every parameter, in forward and
-in reverse mode.  Their transient solution is
+``lax.scan``, or, for a linear autonomous system, exactly by matrix exponentials
+(:func:`_linear_flow`), so results are differentiable in every parameter, in
+forward and in reverse mode.  Their transient solution is
 :func:`~nhsde.statistics.normal_approximation`, their stationary regime
 :func:`~nhsde.statistics.stationary_drift`.
 """
@@ -49,19 +50,26 @@ def _hermite(order: int, dim: int, dtype):
     return jnp.asarray(nodes, dtype), jnp.asarray(weights, dtype)
 
 
-def _dependence(system: StochasticSystem, points: Array, directions: Array):
-    """``d/dZ (∂a/∂Z, b)`` at each point along each direction: ``(point, direction, …)`` arrays."""
-    # called with t = 0.0 (a float: VectorField's annotation asks for an array)
+def _dependence(system: StochasticSystem, points: Array, directions: Array, times: Array):
+    """``d/dZ (∂a/∂Z, b)`` at each point along each direction (``(point, direction, …)`` arrays, at ``t = 0``), and
+    ``d/dt (a, b)`` at each point and time (``(point, time, …)``)."""
     drift: Callable[..., Array] = system.drift_fn
     diffusion: Callable[..., Array] = system.diffusion_fn
 
     def coefficients(z):
+        # called with t = 0.0 (a float: VectorField's annotation asks for an array)
         return jax.jacfwd(lambda y: drift(0.0, y, system.params))(z), diffusion(0.0, z, system.params)
 
     def tangents(z, direction):
         return jax.jvp(coefficients, (z,), (direction,))[1]
 
-    return jax.vmap(jax.vmap(tangents, in_axes=(None, 0)), in_axes=(0, None))(points, directions)
+    def rates(z, t):
+        fields = lambda t: (drift(t, z, system.params), diffusion(t, z, system.params))  # noqa: E731
+        return jax.jvp(fields, (t,), (jnp.ones_like(t),))[1]
+
+    in_z = jax.vmap(jax.vmap(tangents, in_axes=(None, 0)), in_axes=(0, None))(points, directions)
+    in_t = jax.vmap(jax.vmap(rates, in_axes=(None, 0)), in_axes=(0, None))(points, times)
+    return in_z, in_t
 
 
 @functools.lru_cache(maxsize=32)
@@ -76,13 +84,15 @@ def _dependence_program(static, treedef, shapes):
     return jax.jit(run, compiler_options=FAST_COMPILE).lower(avals).compile()
 
 
-def _nonlinear_components(system: StochasticSystem, dtype) -> tuple[int, ...]:
-    """Components on which ``∂a/∂Z`` or ``b`` depend; ``a`` is affine in the others with constant coefficients,
-    so Gaussian expectations need cubature over these only (none for a linear system).
+def _structure(system: StochasticSystem, dtype) -> tuple[tuple[int, ...], bool]:
+    """``(active, autonomous)``: the components on which ``∂a/∂Z`` or ``b`` depend (``a`` is affine in the others
+    with constant coefficients, so Gaussian expectations need cubature over these only: none for a linear
+    system), and whether ``a`` and ``b`` are free of ``t``.
 
-    Found by differentiating ``(∂a/∂Z, b)`` along each component at random states, with every parameter leaf
-    replaced by a random value in ``[0.5, 1.5]``: the structure, not the current (possibly traced) values, decides.
-    The program is compiled ahead and called on concrete arrays, so this holds inside an outer ``jit`` too.
+    Found by differentiating ``(∂a/∂Z, b)`` along each component at random states, and ``(a, b)`` in ``t`` at random
+    states and times, with every parameter leaf replaced by a random value in ``[0.5, 1.5]``: the structure, not the
+    current (possibly traced) values, decides.  The program is compiled ahead and called on concrete arrays, so this
+    holds inside an outer ``jit`` too.
     """
     rng = np.random.default_rng(0)
     d = system.state_dim
@@ -98,6 +108,7 @@ def _nonlinear_components(system: StochasticSystem, dtype) -> tuple[int, ...]:
         eqx.tree_at(lambda s: s.params, system, params),
         rng.normal(size=(3, d)).astype(dtype),
         np.eye(d, dtype=dtype),
+        rng.uniform(0.1, 10.0, size=3).astype(dtype),
     )
     dynamic, static = eqx.partition(probe, eqx.is_array)
     leaves, treedef = jax.tree_util.tree_flatten(dynamic)
@@ -106,11 +117,12 @@ def _nonlinear_components(system: StochasticSystem, dtype) -> tuple[int, ...]:
         program = _dependence_program(static, treedef, shapes)
     except TypeError:  # a static part that cannot be hashed: compile for this call alone
         program = _dependence_program.__wrapped__(static, treedef, shapes)
-    out = program(dynamic)
+    in_z, in_t = program(dynamic)
     found = np.zeros(d, bool)
-    for t in jax.tree_util.tree_leaves(out):  # NaN counts as dependence
+    for t in jax.tree_util.tree_leaves(in_z):  # NaN counts as dependence
         found |= np.any(np.asarray(t).reshape(3, d, -1) != 0, axis=(0, 2))
-    return tuple(int(i) for i in np.flatnonzero(found))
+    autonomous = not any(np.any(np.asarray(t) != 0) for t in jax.tree_util.tree_leaves(in_t))
+    return tuple(int(i) for i in np.flatnonzero(found)), autonomous
 
 
 def _cholesky(k, floor):
@@ -140,6 +152,7 @@ class GaussianClosure(eqx.Module):
     active: tuple[int, ...] = eqx.field(static=True)  # components ∂a/∂Z and b depend on
     nodes: Array
     weights: Array
+    linear: bool = eqx.field(static=True, default=False)  # a affine in Z, b constant, neither depending on t
 
     def expectations(self, t, m, k):
         """``(E_N[a], E_N[∂a/∂Z], E_N[b diag(ν) bᵀ])`` under ``N(m, K)``."""
@@ -184,9 +197,10 @@ def gaussian_closure(system: StochasticSystem, dtype, order: int) -> GaussianClo
         lambda p: p.astype(dtype) if jnp.issubdtype(jnp.result_type(p), jnp.floating) else p, params
     )
     system = eqx.tree_at(lambda s: s.params, system, params)
-    active = _nonlinear_components(system, dtype)
+    active, autonomous = _structure(system, dtype)
     nodes, weights = _hermite(order, len(active), dtype)
-    return GaussianClosure(system, driver_intensity(system.noise, system.noise_dim, dtype), active, nodes, weights)
+    intensity = driver_intensity(system.noise, system.noise_dim, dtype)
+    return GaussianClosure(system, intensity, active, nodes, weights, linear=not active and autonomous)
 
 
 def initial_moments(system, y0, cov0):
@@ -206,10 +220,43 @@ def initial_moments(system, y0, cov0):
     return y0, cov0
 
 
+def _linear_flow(closure: GaussianClosure, m0, k0, t0: float, h: float, n: int):
+    """Means and covariances after each of ``n`` intervals ``h`` of a linear autonomous system, exactly:
+    ``m ← Φ m + g``, ``K ← Φ K Φᵀ + Q_h`` with ``Φ = e^{Ah}``, ``g = ∫₀ʰ e^{As} c ds`` and
+    ``Q_h = ∫₀ʰ e^{As} Q e^{Aᵀs} ds`` (``a = c + A Z``, ``Q = b diag(ν) bᵀ``), read from the exponentials of
+    ``[[A, c], [0, 0]] h`` and of the covariance equation's own generator (``A ⊗ I + I ⊗ A`` on ``vec K``, with
+    ``vec Q``): no exponential of ``−A``, which overflows where friction is strong."""
+    dtype, d = m0.dtype, m0.shape[0]
+    c, a, q = closure.expectations(jnp.asarray(t0, dtype), jnp.zeros_like(m0), jnp.zeros_like(k0))
+    step = jnp.asarray(h, dtype)
+    mean_generator = jnp.zeros((d + 1, d + 1), dtype).at[:d, :d].set(a).at[:d, d].set(c)
+    flow = jax.scipy.linalg.expm(mean_generator * step)
+    phi, g = flow[:d, :d], flow[:d, d]
+    eye = jnp.eye(d, dtype=dtype)
+    cov_generator = jnp.zeros((d * d + 1, d * d + 1), dtype)
+    cov_generator = cov_generator.at[: d * d, : d * d].set(jnp.kron(a, eye) + jnp.kron(eye, a))
+    cov_generator = cov_generator.at[: d * d, d * d].set(q.reshape(-1))
+    q_h = jax.scipy.linalg.expm(cov_generator * step)[: d * d, d * d].reshape(d, d)
+    q_h = 0.5 * (q_h + q_h.T)
+
+    def interval(state, _):
+        m, k = state
+        k = phi @ k @ phi.T + q_h
+        state = (phi @ m + g, 0.5 * (k + k.T))
+        return state, state
+
+    return jax.lax.scan(interval, (m0, k0), length=n)[1]
+
+
 @eqx.filter_jit
 def integrate_moments(closure: GaussianClosure, m0, k0, t0: float, t1: float, n_steps: int, n_save: int):
-    """``(ts, means, covs)`` at ``n_save`` equally spaced times, fixed Dopri8 steps."""
+    """``(ts, means, covs)`` at ``n_save`` equally spaced times: exactly for a linear autonomous system
+    (``closure.linear``, :func:`_linear_flow`), else with ``n_steps`` fixed Dopri8 steps."""
     dtype = m0.dtype
+    ts = jnp.linspace(t0, t1, n_save, dtype=dtype)
+    if closure.linear:
+        ms, ks = _linear_flow(closure, m0, k0, t0, (t1 - t0) / (n_save - 1), n_save - 1)
+        return ts, jnp.concatenate([m0[None], ms]), jnp.concatenate([k0[None], ks])
     solver = dfx.Dopri8(scan_kind="bounded")  # differentiable in forward and reverse mode (the default is reverse only)
     term = dfx.ODETerm(closure.rhs)
     dt = jnp.asarray((t1 - t0) / n_steps, dtype)
@@ -228,5 +275,4 @@ def integrate_moments(closure: GaussianClosure, m0, k0, t0: float, t1: float, n_
         return carry, carry[0]
 
     _, (ms, ks) = jax.lax.scan(interval, (state0, solver_state), jnp.arange(n_save - 1))
-    ts = jnp.linspace(t0, t1, n_save, dtype=dtype)
     return ts, jnp.concatenate([m0[None], ms]), jnp.concatenate([k0[None], ks])

@@ -57,7 +57,8 @@ def normal_approximation(
         y0: initial mean ``(d,)``.
         cov0: initial covariance ``(d, d)`` (default 0: a deterministic start).
         t0, t1: time interval.
-        dt: the fixed Dopri8 step (divides ``t1 − t0``).
+        dt: the fixed Dopri8 step (divides ``t1 − t0``); a linear autonomous system's moments follow their exact
+            flow whatever the step.
         save: state components and save times as in :func:`~nhsde.simulate` (no ``paths``).
         order: Gauss–Hermite nodes per component.
 

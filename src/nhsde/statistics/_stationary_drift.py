@@ -129,7 +129,7 @@ def stationary_drift(
         system: the SDE, with dependent coordinates ``q''`` in its state.
         y0, cov0: initial mean and covariance (default 0) of the relaxation run.
         t_relax: length of the relaxation run before Newton's method.
-        dt: its Dopri8 step.
+        dt: its Dopri8 step (a linear autonomous system's relaxation is exact at any step).
         order: Gauss–Hermite nodes per component.
         newton_steps: Newton iterations on the stationary moment equations.
         rtol: accepted relative residual.
