@@ -8,7 +8,7 @@ import pytest
 
 import nhsde
 from nhsde._simulate import stable_step
-from nhsde._solvers import _flow
+from nhsde._solvers import linear_flow
 from nhsde.mechanics._small import psd_factor
 from nhsde.scenes import ChaplyginSleighInBath
 
@@ -90,7 +90,7 @@ def _soft_flow(gamma, kt, h=0.01, eps=0.5):
     system = ChaplyginSleighInBath(model="soft", drift=False, eps=eps, kT=kt, gamma=gamma).build()
     p = system.params
     b = system.diffusion(0.0, jnp.zeros(3), p)
-    return _flow(system.linear_drift(p), jnp.asarray(h), b, jnp.float64), system, b
+    return linear_flow(system.linear_drift(p), jnp.asarray(h), b, jnp.float64), system, b
 
 
 @pytest.mark.parametrize("gamma", [1.0, 1e3, 1e6])

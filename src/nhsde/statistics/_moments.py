@@ -32,6 +32,7 @@ from jaxtyping import Array
 
 from .._misc import FAST_COMPILE, check_number, is_concrete, real_state
 from .._params import validated
+from .._solvers import linear_flow
 from .._system import StochasticSystem
 from ..noise import driver_intensity
 
@@ -222,21 +223,16 @@ def initial_moments(system, y0, cov0):
 
 def _linear_flow(closure: GaussianClosure, m0, k0, t0: float, h: float, n: int):
     """Means and covariances after each of ``n`` intervals ``h`` of a linear autonomous system, exactly:
-    ``m ← Φ m + g``, ``K ← Φ K Φᵀ + Q_h`` with ``Φ = e^{Ah}``, ``g = ∫₀ʰ e^{As} c ds`` and
-    ``Q_h = ∫₀ʰ e^{As} Q e^{Aᵀs} ds`` (``a = c + A Z``, ``Q = b diag(ν) bᵀ``), read from the exponentials of
-    ``[[A, c], [0, 0]] h`` and of the covariance equation's own generator (``A ⊗ I + I ⊗ A`` on ``vec K``, with
-    ``vec Q``): no exponential of ``−A``, which overflows where friction is strong."""
+    ``m ← Φ m + g``, ``K ← Φ K Φᵀ + Q_h`` with ``Φ = e^{Ah}``, ``g = h φ₁(Ah) c`` and
+    ``Q_h = ∫₀ʰ e^{As} Q e^{Aᵀs} ds`` (``a = c + A Z``, ``Q = b diag(ν) bᵀ``): the exponential step's
+    :func:`~nhsde._solvers.linear_flow` (no exponential of ``−A``, which overflows where friction is strong)."""
     dtype, d = m0.dtype, m0.shape[0]
     c, a, q = closure.expectations(jnp.asarray(t0, dtype), jnp.zeros_like(m0), jnp.zeros_like(k0))
-    step = jnp.asarray(h, dtype)
-    mean_generator = jnp.zeros((d + 1, d + 1), dtype).at[:d, :d].set(a).at[:d, d].set(c)
-    flow = jax.scipy.linalg.expm(mean_generator * step)
-    phi, g = flow[:d, :d], flow[:d, d]
-    eye = jnp.eye(d, dtype=dtype)
-    cov_generator = jnp.zeros((d * d + 1, d * d + 1), dtype)
-    cov_generator = cov_generator.at[: d * d, : d * d].set(jnp.kron(a, eye) + jnp.kron(eye, a))
-    cov_generator = cov_generator.at[: d * d, d * d].set(q.reshape(-1))
-    q_h = jax.scipy.linalg.expm(cov_generator * step)[: d * d, d * d].reshape(d, d)
+    flow = linear_flow(a, jnp.asarray(h, dtype), None, dtype)
+    wide = flow.propagator.dtype
+    phi = flow.propagator.astype(dtype)
+    g = (flow.h_phi @ c.astype(wide)).astype(dtype)
+    q_h = (flow.gram @ q.astype(wide).reshape(-1)).reshape(d, d).astype(dtype)
     q_h = 0.5 * (q_h + q_h.T)
 
     def interval(state, _):
