@@ -17,10 +17,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.scipy.linalg import expm
 from jaxtyping import Array, Float
 
 from .._misc import check_number, check_steps, is_concrete
+from .._solvers import expm
 from .._system import StochasticSystem
 from ._drift import DriftStatistics, StationaryMoments
 from ._moments import GaussianClosure, gaussian_closure, initial_moments, integrate_moments
