@@ -66,6 +66,8 @@ def test_reaches_the_requested_rmse_on_the_ball():
     assert (
         0 <= cost.compile_seconds <= cost.seconds and 0 < run.seconds <= cost.seconds and math.isnan(predicted.seconds)
     )
+    pilot = r.pilot_cost  # the seconds before the run, compilation of the pilots included
+    assert 0 <= pilot.compile_seconds <= pilot.seconds and pilot.seconds + run.seconds <= cost.seconds
     assert f"measured {run.path_steps:.3g} in " in r.report() and "s of it compiling" in r.report()
     text = str(r)
     assert "chosen: " + r.choice in text and "multilevel, euler" in text

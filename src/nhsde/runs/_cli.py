@@ -423,6 +423,7 @@ def _write_estimate(out: Path, config, statistic: str, result) -> None:
         },
         "work_path_steps": result.cost.path_steps,
         "pilot_work_path_steps": result.pilot_cost.path_steps,
+        "pilot_seconds": result.pilot_cost.seconds,
         "seconds": result.cost.seconds,
         "compile_seconds": result.cost.compile_seconds,
         "estimator": str(result.choice),

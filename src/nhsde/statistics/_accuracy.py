@@ -491,7 +491,7 @@ def _to_accuracy(
         return dataclasses.replace(
             again,
             cost=again.cost + failed,
-            pilot_cost=again.pilot_cost + Cost(failed.path_steps),
+            pilot_cost=again.pilot_cost + failed,  # the failed attempt, its seconds too, went before the run
             reason=f"{again.reason}; at dt={h0:g} {failure}, so every alternative was priced again from dt={h0 / 2:g}",
         )
 
@@ -524,6 +524,7 @@ def _to_accuracy(
     reason = f"cheapest predicted work ({key_of(chosen):.3g} {unit})"
     if len(ranked) > 1 and key_of(chosen) > 0:
         reason += f", {key_of(ranked[1]) / key_of(chosen):.2g}× below the next, {ranked[1].name}"
+    pilot_cost = watch.cost(pilot_work)  # everything before the run: the pilots, their pricing and timing
     run_watch = Stopwatch()
     with counted_path_steps() as solved:
         try:
@@ -549,7 +550,7 @@ def _to_accuracy(
         bias=float(bias),
         rmse=float(rmse),
         cost=watch.cost(run_cost.path_steps + pilot_work),
-        pilot_cost=Cost(float(pilot_work)),
+        pilot_cost=pilot_cost,
         run_cost=run_cost,
         predicted=Cost(chosen.cost / chosen.kappa, chosen.seconds),
         choice=chosen.name,

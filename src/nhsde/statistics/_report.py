@@ -75,11 +75,11 @@ class AccuracyResult:
 
     ``estimate`` is what the chosen estimator returned, ``rmse`` the absolute target; ``cost`` the work done by
     the whole call (path-steps, pilots included; wall seconds and the seconds spent compiling), ``pilot_cost`` the
-    pilots' path-steps, ``run_cost`` the chosen run's (its seconds include its compilation) against
-    ``predicted``, its predicted path-steps (and seconds where the alternatives were ranked by them, else
-    ``nan``).  ``choice`` the name of the alternative run, ``alternatives`` all of them with their predicted work,
-    ``pilot`` one summary per solver.  ``derivative()``: the statistic's derivatives in the parameters ``wrt`` with
-    their standard errors.  ``report()`` (also ``str``) prints it as a short table.
+    pilots' (path-steps; seconds: everything before the run), ``run_cost`` the chosen run's (its seconds include
+    its compilation) against ``predicted``, its predicted path-steps (and seconds where the alternatives were
+    ranked by them, else ``nan``).  ``choice`` the name of the alternative run, ``alternatives`` all of them with
+    their predicted work, ``pilot`` one summary per solver.  ``derivative()``: the statistic's derivatives in the
+    parameters ``wrt`` with their standard errors.  ``report()`` (also ``str``) prints it as a short table.
     """
 
     statistic: AbstractStatistic
