@@ -327,7 +327,7 @@ class AbstractMoments(eqx.Module):
     names: AbstractVar[tuple[str, ...]]
     roles: AbstractVar[tuple[str, ...]]
 
-    def standard_errors(self) -> tuple[Array, Array] | None:
+    def standard_errors(self) -> tuple[Array | np.ndarray, Array | np.ndarray] | None:
         """``(mean_se, cov_se)``, or ``None`` where the moments carry no Monte-Carlo error."""
         return None
 

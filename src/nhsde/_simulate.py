@@ -273,8 +273,10 @@ def _run(system: StochasticSystem, needs: SolverNeeds, y0, key, first_path, grid
         params = eqx.error_if(params, unstable, f"simulate: {SimulationResult[SimulationResult.unstable_step]}")
     chunk_fn = _adaptive_chunk if plan.adaptive else _fixed_chunk
     total = plan.n_chunks * plan.chunk
-    if plan.per_path_y0:
-        y0_all = jnp.concatenate([y0, jnp.broadcast_to(y0[:1], (total - plan.n_paths, y0.shape[1]))])
+    # every path's initial state, the chunks' surplus paths starting from the first's (a common state: y0 itself)
+    y0_all = (
+        jnp.concatenate([y0, jnp.broadcast_to(y0[:1], (total - plan.n_paths, y0.shape[1]))]) if plan.per_path_y0 else y0
+    )
 
     def run(c, size, meter, meter_state):
         """Observations, failure flags, validity and meter state of the ``size`` paths of chunk ``c``."""
@@ -316,6 +318,7 @@ def _run(system: StochasticSystem, needs: SolverNeeds, y0, key, first_path, grid
         t, y = jnp.asarray(plan.t0, y0.dtype), y0 if y0.ndim == 1 else y0[0]
         return jax.eval_shape(system.observe(plan.names), t, y, params).dtype
 
+    obs_all = bad_all = None  # the per-path values and failure flags, where kept
     if n_dev == 1 and plan.n_chunks == 1:
         obs0, bad0, valid0, meter_state = run(0, plan.chunk, meter, meter_state)
         sums = MomentSums.zeros(first_shift(obs0, valid0)).add_paths(obs0, valid0)
@@ -371,8 +374,9 @@ def _run(system: StochasticSystem, needs: SolverNeeds, y0, key, first_path, grid
     meter.close(meter_state)
     failed = paths = None
     if keep:
-        failed = bad_all.reshape(-1)[: plan.n_paths]  # pyright: ignore[reportPossiblyUnbound]
-        paths = obs_all.reshape(total, plan.n_save, -1)[: plan.n_paths]  # pyright: ignore[reportPossiblyUnbound]
+        assert obs_all is not None and bad_all is not None
+        failed = bad_all.reshape(-1)[: plan.n_paths]
+        paths = obs_all.reshape(total, plan.n_save, -1)[: plan.n_paths]
     ts = jnp.linspace(plan.t0, plan.t1, plan.n_save, dtype=y0.dtype)
     return ts, sums, failures, failed, paths, unstable
 

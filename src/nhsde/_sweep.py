@@ -236,6 +236,10 @@ def sweep(
         "n_used": (grid_dims, per_point(n_used.astype(np.int64))),
         "n_failed": (grid_dims, per_point(np.asarray(n_failed, np.int64))),
     }
+    if statistic is not None:
+        data["value"] = (grid_dims, per_point(statistic.pick(saved, mean, cov)), {"long_name": f"{statistic} at t1"})
+        value_se = statistic.pick(saved, mean_se, cov_se)
+        data["value_se"] = (grid_dims, per_point(value_se), {"long_name": "its standard error"})
     if wrt:
         d_mean, d_cov, d_mean_se, d_cov_se = derivatives  # (G, p, …)
         for a, q in enumerate(wrt):
@@ -243,15 +247,12 @@ def sweep(
                 long_name = f"pathwise (forward-mode) derivative of {stat} in {q}"
                 data[f"d_{stat}_d_{q}"] = (dims, per_point(value[:, a]), {"long_name": long_name})
                 data[f"d_{stat}_d_{q}_se"] = (dims, per_point(se[:, a]), {"long_name": "its standard error"})
-    if statistic is not None:
-        pick = statistic.pick
-        label = str(statistic)
-        data["value"] = (grid_dims, per_point(pick(saved, mean, cov)), {"long_name": f"{label} at t1"})
-        data["value_se"] = (grid_dims, per_point(pick(saved, mean_se, cov_se)), {"long_name": "its standard error"})
-        for a, q in enumerate(wrt):
-            d, d_se = pick(saved, d_mean[:, a], d_cov[:, a]), pick(saved, d_mean_se[:, a], d_cov_se[:, a])
-            data[f"d_value_d_{q}"] = (grid_dims, per_point(d), {"long_name": f"derivative of {label} in {q}"})
-            data[f"d_value_d_{q}_se"] = (grid_dims, per_point(d_se), {"long_name": "its standard error"})
+            if statistic is not None:
+                d = statistic.pick(saved, d_mean[:, a], d_cov[:, a])
+                d_se = statistic.pick(saved, d_mean_se[:, a], d_cov_se[:, a])
+                long_name = f"derivative of {statistic} in {q}"
+                data[f"d_value_d_{q}"] = (grid_dims, per_point(d), {"long_name": long_name})
+                data[f"d_value_d_{q}_se"] = (grid_dims, per_point(d_se), {"long_name": "its standard error"})
     fixed = {row[0]: getattr(system.params, row[0]) for row in system.params.describe()}
     attrs = {
         "statistic": "" if statistic is None else str(statistic),

@@ -130,12 +130,11 @@ def _least_compulsion(spec: MechanicalSpec, mass, q, pi, t, p):
     a_rows, _ = spec.ideal_constraints(q, pi, t, p)
     c_rows, _, d_rows = spec.servo_constraints(q, pi, t, p)
     chol = small.cholesky(mass)
-    if spec.n_ideal:
-        k_pinv = jnp.linalg.pinv(jsl.solve_triangular(chol, a_rows.T, lower=True).T)
+    k_pinv = jnp.linalg.pinv(jsl.solve_triangular(chol, a_rows.T, lower=True).T) if spec.n_ideal else None
 
     def least(f, t_a):
         free = small.cho_solve(chol, f)
-        if not spec.n_ideal:
+        if k_pinv is None:
             return free
         return free + jsl.solve_triangular(chol.T, k_pinv @ (t_a - a_rows @ free), lower=False)
 

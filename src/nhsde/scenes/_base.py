@@ -4,8 +4,8 @@
 import abc
 import re
 import types
-from collections.abc import Callable, Mapping
-from typing import TYPE_CHECKING, Any, ClassVar
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
 import equinox as eqx
 
@@ -114,6 +114,15 @@ def scene_registry(package: str) -> Mapping[str, type[AbstractScene]]:
     return types.MappingProxyType(found)
 
 
+class RollingVectorField(Protocol):
+    """What a rolling scene integrates: ``v(t, y, params)``, and the ``layout`` of its state ``y``."""
+
+    @property
+    def layout(self) -> StateLayout: ...
+
+    def __call__(self, t: Any, y: Any, params: Any, /) -> Any: ...
+
+
 class AbstractRollingBodyScene(eqx.Module):
     """A deterministic rolling scene: the ordinary differential equation ``ẏ = v(t, y, params)``.
 
@@ -126,7 +135,7 @@ class AbstractRollingBodyScene(eqx.Module):
     """
 
     params: AbstractVar[AbstractParameters]
-    vector_field: AbstractVar[Callable]
+    vector_field: AbstractVar[RollingVectorField]
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
@@ -134,8 +143,8 @@ class AbstractRollingBodyScene(eqx.Module):
 
     @property
     def layout(self) -> StateLayout:
-        return self.vector_field.layout  # pyright: ignore[reportAttributeAccessIssue]
+        return self.vector_field.layout
 
     @abc.abstractmethod
-    def energy(self, y):
+    def energy(self, y) -> Any:
         """The energy, a first integral of the flow."""

@@ -119,6 +119,7 @@ class _Drift(eqx.Module):
         m = body.mass
         v_c = jnp.cross(r, omega)
         alpha_at, pi_at = self.layout.slices()
+        pi_dot = None  # Φ₂'s plane velocity's rate, where the state has it
         if pi_at is None:  # Φ₁: friction on the velocity relative to the plane
             force = -m * p.gravity * n - 2 * m * p.eps * v_c
         else:  # Φ₂: friction on the absolute velocity v_C + π; inertial force −m π̇, drift part 2mεπ
@@ -131,7 +132,7 @@ class _Drift(eqx.Module):
         parts = [omega_dot, jnp.linalg.norm(gamma) * n_dot]
         if alpha_at is not None:
             parts.append(position_rates(y[alpha_at : alpha_at + 3], omega, n, r_dot))
-        if pi_at is not None:
+        if pi_dot is not None:
             parts.append(pi_dot)
         return jnp.concatenate(parts)
 

@@ -51,7 +51,7 @@ import dataclasses
 import itertools
 import math
 from collections.abc import Callable
-from typing import Any
+from typing import Any, cast
 
 import diffrax as dfx
 import equinox as eqx
@@ -281,7 +281,7 @@ def fitted_system(augmented: StochasticSystem, d: int, beta) -> StochasticSystem
         noise_dim=augmented.noise_dim,
         interpretation="ito",
         additive_noise=False,
-        observables=tuple((name, _OnState(_Unwrapped(fn.fn), r)) for name, fn in augmented.observables),
+        observables=tuple((name, _OnState(_Unwrapped(cast(_OnState, fn).fn), r)) for name, fn in augmented.observables),
         noise=augmented.noise,
     )
 

@@ -422,6 +422,7 @@ def multilevel_quasi_monte_carlo(
     linearised = None
     if control is not None:
         linearised = LinearisedControl(system, system.state(y0, "y0"), control, save.names, "control")
+    counts: list[int] = []  # the points per level, where given
     if n_points is not None:
         if not isinstance(n_points, Sequence) or isinstance(n_points, str):
             raise TypeError(f"n_points={n_points!r}; expected one count per level, (N_0, …, N_L).")
