@@ -7,6 +7,7 @@ requested RMSE and a stated confidence (χ² bound on the realised mean-square e
 import dataclasses
 import json
 import math
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -39,7 +40,7 @@ K_XX = float(ball_covariances(jnp.float64(1.0), 1.0, 1.0, DELTA)[0])
 # included); the control variate is exact on the linear ball and would make the accuracy test trivial.  Quasi-Monte
 # Carlo has tests of its own (its pilot compiles programs of its own; off here so that these stay fast).
 EULER = (PlainMonteCarlo("euler"), Richardson("euler"), Multilevel("euler"))
-FAST = dict(t1=1.0, statistic=("cov", "x", "x"), estimators=EULER)
+FAST: dict[str, Any] = dict(t1=1.0, statistic=("cov", "x", "x"), estimators=EULER)
 QMC_ON = FAST | dict(estimators=EULER + (QuasiMonteCarlo(),))
 QMC_ALONE = dict(estimators=(QuasiMonteCarlo(),))
 
@@ -157,7 +158,7 @@ def test_a_pilot_grown_huge_without_overflowing_prices_everything_again_from_hal
     work counted."""
     scene = ChaplyginBall(eps=1.0, nu=2.0)
     eps = 0.01 * 3 * 2.0 / 8
-    args = dict(t1=4.0, statistic=("mean", "energy"), rmse=eps, estimators=(PlainMonteCarlo("euler"),))
+    args: dict[str, Any] = dict(t1=4.0, statistic=("mean", "energy"), rmse=eps, estimators=(PlainMonteCarlo("euler"),))
     r = to_accuracy(scene.build(), scene.initial_state().astype(jnp.float64), jax.random.key(1003), **args)
     assert "no alternative reached the target, so every alternative was priced again from dt=0.5" in r.reason
     assert abs(r.value()[0] - 0.75) <= 3 * eps and r.pilot_cost.path_steps > sum(p.work for p in r.pilot), r.report()
@@ -187,7 +188,7 @@ def test_relative_rmse_and_the_budget_guard():
 
 def test_bad_input_raises_naming_the_argument():
     system, key = BALL.build(), jax.random.key(0)
-    base = dict(t1=1.0, statistic=("cov", "x", "x"))
+    base: dict[str, Any] = dict(t1=1.0, statistic=("cov", "x", "x"))
     for rmse in (0.0, -1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="rmse="):
             to_accuracy(system, Y0, key, rmse=rmse, **base)
@@ -376,7 +377,7 @@ def test_reaches_the_target_from_a_coarsest_step_above_one():
     solvers = ("euler", nhsde.PlatenWeak2(increments="gaussian"))
     kinds = (PlainMonteCarlo, Richardson, Multilevel)
     plans = tuple(kind(s, antithetic=a) for s in solvers for a in (False, True) for kind in kinds)
-    args = dict(t1=10.0, statistic=("cov", "x", "x"), relative_rmse=0.05, estimators=plans)
+    args: dict[str, Any] = dict(t1=10.0, statistic=("cov", "x", "x"), relative_rmse=0.05, estimators=plans)
     runs = [to_accuracy(scene.build(), Y0, jax.random.key(100 + r), **args) for r in range(20)]
     errors = np.array([(r.value()[0] - exact) / r.rmse for r in runs])
     assert all(r.pilot[0].dts[0] == 2.5 for r in runs)
@@ -410,7 +411,7 @@ def test_a_stratonovich_system_is_priced_first_with_heun_which_needs_no_ito_conv
     mu, sigma = -0.5, 0.5
     exact = math.exp(mu + sigma**2 / 2)
     system = gbm_stratonovich(mu, sigma)
-    args = dict(t1=1.0, statistic=nhsde.statistics.Mean("x"), relative_rmse=0.02)
+    args: dict[str, Any] = dict(t1=1.0, statistic=nhsde.statistics.Mean("x"), relative_rmse=0.02)
     runs = [to_accuracy(system, jnp.ones(1), jax.random.key(40 + r), **args) for r in range(4)]
     assert all(r.pilot[0].solver == "heun2" for r in runs), runs[0].report()
     names = {a.name for a in runs[0].alternatives}

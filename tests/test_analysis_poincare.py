@@ -1,6 +1,8 @@
 """Poincaré sections of S2 (1.17)–(1.18): invariant curves of the integrable ball (Fig. 3), and the
 attractor/repeller pair of the unbalanced ball in gravity swapped by the reversing involution (Fig. 7)."""
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -65,7 +67,7 @@ def test_fig7_reversibility_swaps_the_map_and_its_inverse(unbalanced_ball_in_gra
     """
     scene = unbalanced_ball_in_gravity
     points = jnp.array([[0.45, 0.85], [3.5, 0.58]])
-    kw = {"h": 50.0, "g0": np.pi, "n_crossings": 30, "dt": 0.02}
+    kw: dict[str, Any] = {"h": 50.0, "g0": np.pi, "n_crossings": 30, "dt": 0.02}
     forward = A.poincare_section(scene.vector_field, B.rolling_energy, scene.params, points, **kw)
     mirrored = jnp.stack(reflect(points[:, 0], points[:, 1]), axis=1)
     backward = A.poincare_section(scene.vector_field, B.rolling_energy, scene.params, mirrored, backward=True, **kw)
@@ -85,7 +87,7 @@ def test_fig7_attractor_and_repeller_are_mirror_images(unbalanced_ball_in_gravit
     rate along the repeller.
     """
     scene, p = unbalanced_ball_in_gravity, unbalanced_ball_in_gravity.params
-    kw = {"h": 50.0, "g0": np.pi, "n_crossings": 150, "dt": 0.02}
+    kw: dict[str, Any] = {"h": 50.0, "g0": np.pi, "n_crossings": 150, "dt": 0.02}
     forward = A.poincare_section(scene.vector_field, B.rolling_energy, p, jnp.array([[0.45, 0.85], [0.6, 0.75]]), **kw)
     backward = A.poincare_section(
         scene.vector_field, B.rolling_energy, p, jnp.array([[3.7, -0.8], [3.45, -0.92]]), backward=True, **kw

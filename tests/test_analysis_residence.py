@@ -7,6 +7,7 @@ noise ``diag(ν/m, ν/J)``, so ``Σ = diag(ν/(4εm), ν/(2Jκ))``.
 """
 
 import math
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -66,7 +67,7 @@ def steady(system):
     return jnp.stack([system.params.speed, 0.0])
 
 
-GEOMETRY = {"mass": 2.0, "inertia": 0.5, "offset": 0.7, "speed": 1.3}  # J = 1.48, κ = 1.2297… + 2ε
+GEOMETRY: dict[str, Any] = {"mass": 2.0, "inertia": 0.5, "offset": 0.7, "speed": 1.3}  # J = 1.48, κ = 1.2297… + 2ε
 
 
 def closed_forms(eps, nu, mass, inertia, offset, speed):
@@ -228,7 +229,12 @@ def test_residence_time_errors():
 # ----------------------------------------------------------------------------- Monte Carlo
 
 # Cruising at v₀ = 3 with m = I = a = 1, ε = 0.25: κ = 2, Σ = diag(ν, ν/8); relaxation times 2 (v) and 0.5 (ω).
-MC = {"n_paths": 4096, "t1": 8.0, "dt": 0.01, "solver": "sra1"}  # one compiled program for every Monte-Carlo test below
+MC: dict[str, Any] = {
+    "n_paths": 4096,
+    "t1": 8.0,
+    "dt": 0.01,
+    "solver": "sra1",
+}  # one compiled program for every Monte-Carlo test below
 SMALL_NU, LARGE_NU = 0.01, 10.0
 
 

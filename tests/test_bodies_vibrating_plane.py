@@ -3,6 +3,7 @@ equation and against long ensembles; friction models Φ₁ and Φ₂; Jellett's 
 
 import dataclasses
 from functools import partial
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -224,7 +225,13 @@ def test_contact_normal_marginal_detects_a_body_without_invariant_measure(asymme
         assert t2 < critical and np.max(np.abs(z)) < 4, (t2, z)
 
 
-LONG_RUN = {"n_paths": 256, "t1": 40.0, "dt": 0.01, "solver": "heun", "save": nhsde.Save(n=2, paths=True)}
+LONG_RUN: dict[str, Any] = {
+    "n_paths": 256,
+    "t1": 40.0,
+    "dt": 0.01,
+    "solver": "heun",
+    "save": nhsde.Save(n=2, paths=True),
+}
 
 
 def test_phi2_carries_the_plane_velocity_and_moves_the_body_as_phi1():

@@ -11,6 +11,7 @@ standard errors (4 SE, 99.99 %), or from rounding where the estimator is exact.
 
 import dataclasses
 import math
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -31,13 +32,13 @@ from nhsde.statistics import (
 
 DELTA = 1 / 1.4
 BALL = BallOnVibratingPlane(eps=1.0, nu=1.0).build()
-BALL_ARGS = dict(t1=1.0, dt=0.25, statistic=("cov", "x", "x"), save=nhsde.Save(names=("x", "u_x"), n=3))
+BALL_ARGS: dict[str, Any] = dict(t1=1.0, dt=0.25, statistic=("cov", "x", "x"), save=nhsde.Save(names=("x", "u_x"), n=3))
 
 EPS, T1 = 0.5, 2.0
 SLEIGH = ChaplyginSleigh(eps=EPS, nu=1.0, drift=False).build()
 SLEIGH_Y0 = jnp.array([1.0, 0.5])  # v, ω; H0 = ½(m v² + J ω²) = 0.75 with J = 2
 GAUSS = nhsde.PlatenWeak2(increments="gaussian")
-SLEIGH_ARGS = dict(t1=T1, dt=0.25, statistic=Mean("energy"), solver=GAUSS)
+SLEIGH_ARGS: dict[str, Any] = dict(t1=T1, dt=0.25, statistic=Mean("energy"), solver=GAUSS)
 SLEIGH_COUNTS = (4096, 1024, 256, 256)
 
 
@@ -188,7 +189,7 @@ def test_inside_qmc_the_sleigh_energy_and_its_derivatives_agree():
     """One level of 16 × 1024 points at h = 1/16 (weak order 2): E[H](t1) and ∂E[H]/∂(ε, ν) within 4 SE of the
     closed form (the SE over 14 degrees of freedom: β is fitted on the 16 scramblings), and the control divides
     the scramblings' variance (measured ÷3.3 at h = 1/8, β ≈ 1; asked: > 2)."""
-    args = dict(SLEIGH_ARGS, dt=1 / 16)
+    args: dict[str, Any] = dict(SLEIGH_ARGS, dt=1 / 16)
     key = jax.random.key(2)
     est = multilevel_quasi_monte_carlo(
         SLEIGH, SLEIGH_Y0, key, n_points=(1024,), control="mean", wrt=("eps", "nu"), **args
@@ -231,7 +232,7 @@ def test_a_run_far_beyond_its_plan_is_never_returned():
     again from half the step and meets the target there; from a given step it raises, naming the ratio."""
     scene = ChaplyginBall(eps=1.0, nu=2.0)
     system, y0 = scene.build(), scene.initial_state().astype(jnp.float64)
-    args = dict(
+    args: dict[str, Any] = dict(
         t1=4.0,
         statistic=Mean("energy"),
         rmse=0.0075,

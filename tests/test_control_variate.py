@@ -9,6 +9,7 @@ estimator is exact.
 
 import dataclasses
 import math
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -23,7 +24,7 @@ from nhsde.statistics import control_variate
 DELTA = 1 / 1.4
 BALL = BallOnVibratingPlane(eps=1.0, nu=1.0)
 Y0 = jnp.zeros(4)
-BALL_ARGS = dict(n_paths=256, t1=1.0, dt=1 / 16, save=nhsde.Save(names=("x", "u_x"), n=3))
+BALL_ARGS: dict[str, Any] = dict(n_paths=256, t1=1.0, dt=1 / 16, save=nhsde.Save(names=("x", "u_x"), n=3))
 
 
 def ball_exact(ts, eps=1.0, nu=1.0):
@@ -85,7 +86,7 @@ def test_the_estimate_is_continuous_as_the_noise_vanishes():
 )
 def test_every_scheme_keeps_the_linear_system_exact(solver):
     """Every scheme steps the control like the system (same increments, drift ``a(C)``): exact on the ball."""
-    args = dict(BALL_ARGS, n_paths=64, dt=1 / 8)
+    args: dict[str, Any] = dict(BALL_ARGS, n_paths=64, dt=1 / 8)
     est = control_variate(BALL.build(), Y0, jax.random.key(5), solver=solver, **args)
     np.testing.assert_allclose(np.asarray(est.cov), ball_exact(np.asarray(est.ts)), rtol=1e-10, atol=1e-15)
 
@@ -129,7 +130,9 @@ def test_jump_driver_enters_through_its_intensity():
 
 SLEIGH_EPS, SLEIGH_T1 = 0.5, 2.0
 SLEIGH_Y0 = jnp.array([1.0, 0.5])  # v, ω; H0 = ½(m v² + J ω²) with J = I + m a² = 2
-SLEIGH_ARGS = dict(n_paths=4096, t1=SLEIGH_T1, dt=1 / 16, solver="sra1", save=nhsde.Save(names=("energy",), n=2))
+SLEIGH_ARGS: dict[str, Any] = dict(
+    n_paths=4096, t1=SLEIGH_T1, dt=1 / 16, solver="sra1", save=nhsde.Save(names=("energy",), n=2)
+)
 
 
 def sleigh_energy(nu):
@@ -163,7 +166,7 @@ def test_derivatives_are_jacfwd_of_the_estimate_on_the_sleigh():
     """``wrt=``: the derivatives (β fixed) are ``jax.jacfwd`` of ``.mean`` and ``.cov`` in (ε, ν) up to rounding,
     on a nonlinear system with an observable and a state component saved at three times (β ≠ 1, varying)."""
     system = ChaplyginSleigh(eps=SLEIGH_EPS, nu=1.0, drift=False).build()
-    args = dict(n_paths=32, t1=1.0, dt=1 / 8, save=nhsde.Save(names=("energy", "v"), n=3))
+    args: dict[str, Any] = dict(n_paths=32, t1=1.0, dt=1 / 8, save=nhsde.Save(names=("energy", "v"), n=3))
 
     def moments(theta):
         est = control_variate(system.replace_params(eps=theta[0], nu=theta[1]), SLEIGH_Y0, jax.random.key(4), **args)
@@ -225,7 +228,7 @@ def test_derivative_of_the_sleigh_energy_agrees_with_plain_sensitivities():
     ],
 )
 def test_bad_input_names_the_argument(kwargs, match):
-    args = dict(n_paths=64, t1=1.0, dt=0.25) | kwargs
+    args: dict[str, Any] = dict(n_paths=64, t1=1.0, dt=0.25) | kwargs
     with pytest.raises((ValueError, TypeError), match=match):
         control_variate(BALL.build(), Y0, jax.random.key(0), **args)
 

@@ -3,6 +3,7 @@ form (S0 (3.1)) within the Monte-Carlo standard error, and the exact knife edge 
 
 import sys
 from pathlib import Path
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -102,7 +103,7 @@ def test_the_effective_diffusions_standard_error_matches_its_spread_over_keys():
     from scipy.stats import chi2
 
     scene = BallOnVibratingPlane(eps=1.0, nu=1.0)
-    run = dict(n_paths=256, t1=4.0, dt=0.05, save=nhsde.Save(n=9, paths=True))
+    run: dict[str, Any] = dict(n_paths=256, t1=4.0, dt=0.05, save=nhsde.Save(n=9, paths=True))
     d, se = [], []
     for k in range(16):
         ens = nhsde.simulate(scene.build(), scene.initial_state(), jax.random.key(100 + k), **run)
@@ -122,7 +123,7 @@ def test_the_effective_diffusion_under_jit_and_with_failed_paths():
     refused with the plain message.  Failed paths (nan) are left out of the SE: it equals the delta-method formula
     ``N/(N−1)·std(ψ_p)/√N`` over the other paths, computed here in numpy."""
     scene = BallOnVibratingPlane(eps=1.0, nu=1.0)
-    run = dict(n_paths=256, t1=2.0, dt=0.05, save=nhsde.Save(n=5, paths=True))
+    run: dict[str, Any] = dict(n_paths=256, t1=2.0, dt=0.05, save=nhsde.Save(n=5, paths=True))
 
     def both(eps, t_from=None):
         ens = nhsde.simulate(scene.build().replace_params(eps=eps), scene.initial_state(), jax.random.key(5), **run)

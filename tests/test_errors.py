@@ -1,6 +1,7 @@
 """Bad input raises naming the argument and the allowed range; failures are reported, never averaged."""
 
 import math
+from typing import Any
 
 import diffrax
 import equinox as eqx
@@ -18,7 +19,7 @@ KEY = jax.random.key(0)
 
 
 def sim(**kw):
-    args = dict(n_paths=64, t1=1.0, dt=0.1)
+    args: dict[str, Any] = dict(n_paths=64, t1=1.0, dt=0.1)
     args.update(kw)
     system = args.pop("system", BALL.build())
     y0 = args.pop("y0", BALL.initial_state())

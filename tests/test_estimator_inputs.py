@@ -1,6 +1,8 @@
 """What the estimators accept and refuse: path counts below four, targets finer than the precision resolves, and
 quasi-Monte Carlo under ``jit``, ``grad`` and ``vmap`` (as plain and multilevel Monte Carlo)."""
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -21,7 +23,7 @@ from nhsde.statistics import (
 BALL = BallOnVibratingPlane(eps=1.0, nu=1.0)
 Y0 = jnp.zeros(4)
 KEY = jax.random.key(0)
-SPAN = dict(t1=0.5, dt=0.0625)
+SPAN: dict[str, Any] = dict(t1=0.5, dt=0.0625)
 
 
 @pytest.mark.parametrize(
@@ -71,7 +73,9 @@ def drifting(dtype):
     )
 
 
-ONE_ESTIMATOR = dict(t1=1.0, statistic=Mean("x"), estimators=(PlainMonteCarlo("euler"),), pilot_paths=256)
+ONE_ESTIMATOR: dict[str, Any] = dict(
+    t1=1.0, statistic=Mean("x"), estimators=(PlainMonteCarlo("euler"),), pilot_paths=256
+)
 
 
 def test_a_target_finer_than_float32_resolves_is_refused_and_float64_meets_it():

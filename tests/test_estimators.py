@@ -5,6 +5,7 @@ the exact values are the ball's closed forms, S0 (3.1).
 """
 
 import dataclasses
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -36,7 +37,7 @@ def k_xx(t, eps=1.0, nu=1.0):
 def test_extrapolation_removes_the_euler_bias_of_k_xx():
     """Euler at h = 1/8 is off by > 5 SE; 2 S(h/2) − S(h) on one Brownian path is within 3 SE at every time."""
     save = nhsde.Save(names=("x",), n=5)
-    args = dict(n_paths=2**17, t1=2.0, dt=0.125, save=save)
+    args: dict[str, Any] = dict(n_paths=2**17, t1=2.0, dt=0.125, save=save)
     est = extrapolate(BALL.build(), Y0, jax.random.key(0), **args)
     plain = nhsde.simulate(BALL.build(), Y0, jax.random.key(0), **args)
     exact = k_xx(np.linspace(0.0, 2.0, 5))[1:]
@@ -50,7 +51,7 @@ def test_extrapolation_reports_its_gradients_with_standard_errors():
     """wrt=('eps', 'nu'): the derivatives of the extrapolated K_xx equal jacfwd of the same estimate, and the analytic
     ∂K_xx(2)/∂(ε, ν) lies within 4 of their standard errors (Euler extrapolated at h = 1/8: bias far below them)."""
     save, key = nhsde.Save(names=("x",), n=2), jax.random.key(3)
-    args = dict(n_paths=2**13, t1=2.0, dt=0.125, save=save)
+    args: dict[str, Any] = dict(n_paths=2**13, t1=2.0, dt=0.125, save=save)
     est = extrapolate(BALL.build(), Y0, key, wrt=("eps", "nu"), **args)
     assert est.derivatives is not None and est.derivatives.wrt == ("eps", "nu")
 
@@ -67,7 +68,7 @@ def test_extrapolation_reports_its_gradients_with_standard_errors():
 def test_antithetic_paths_make_the_ball_means_exact():
     """From rest x(−W) = −x(W): the antithetic mean is exactly 0, the covariance that of the plain paths."""
     save = nhsde.Save(names=("x", "u_x"), n=2)
-    args = dict(n_paths=512, t1=1.0, dt=0.25, save=save)
+    args: dict[str, Any] = dict(n_paths=512, t1=1.0, dt=0.25, save=save)
     anti = extrapolate(BALL.build(), Y0, jax.random.key(1), antithetic=True, **args)
     plain = extrapolate(BALL.build(), Y0, jax.random.key(1), **args)
     np.testing.assert_allclose(np.asarray(anti.mean), 0.0, atol=1e-15)
@@ -155,7 +156,9 @@ def test_gradients_through_multilevel_agree_with_the_closed_form():
 
     Two levels (h = 1/8, 1/16) of the weak-order-2 solver: its bias there is far below the standard error.
     """
-    args = dict(t1=1.0, dt=0.125, statistic=("cov", "x", "x"), solver=nhsde.PlatenWeak2(increments="gaussian"))
+    args: dict[str, Any] = dict(
+        t1=1.0, dt=0.125, statistic=("cov", "x", "x"), solver=nhsde.PlatenWeak2(increments="gaussian")
+    )
 
     def estimate(p, key):
         system = BALL.build().replace_params(eps=p[0], nu=p[1])
@@ -171,7 +174,9 @@ def test_gradients_through_multilevel_agree_with_the_closed_form():
 def test_multilevel_reports_its_gradients_with_standard_errors():
     """wrt=('eps', 'nu'): the per-path tangents of every level give jacfwd's gradient of the same estimate, and a
     standard error within which (4 SE) the analytic ∂K_xx(1)/∂(ε, ν) lies."""
-    args = dict(t1=1.0, dt=0.125, statistic=("cov", "x", "x"), solver=nhsde.PlatenWeak2(increments="gaussian"))
+    args: dict[str, Any] = dict(
+        t1=1.0, dt=0.125, statistic=("cov", "x", "x"), solver=nhsde.PlatenWeak2(increments="gaussian")
+    )
     key, counts = jax.random.key(10), (8192, 2048)
     est = multilevel_monte_carlo(BALL.build(), Y0, key, n_paths=counts, wrt=("eps", "nu"), **args)
 
@@ -188,7 +193,7 @@ def test_multilevel_reports_its_gradients_with_standard_errors():
 
 def test_bad_input_raises_naming_the_argument():
     system = BALL.build()
-    base = dict(t1=1.0, dt=0.25, statistic=("cov", "x", "x"))
+    base: dict[str, Any] = dict(t1=1.0, dt=0.25, statistic=("cov", "x", "x"))
     for rmse in (0.0, -1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="rmse="):
             multilevel_monte_carlo(system, Y0, jax.random.key(0), rmse=rmse, **base)
@@ -235,7 +240,7 @@ def test_bad_spans_and_level_counts_are_refused_before_any_solve():
         for call in calls:
             with pytest.raises(ValueError, match=f"^t1={t1}; must be"):
                 call()
-    base = dict(t1=1.0, dt=0.25, statistic=target)
+    base: dict[str, Any] = dict(t1=1.0, dt=0.25, statistic=target)
     with pytest.raises(TypeError, match=r"n_paths=256; expected one count per level.*\(256,\) \* 3"):
         multilevel_monte_carlo(system, Y0, key, n_paths=256, **base)
     for kwargs in (dict(n_paths=(64,), max_levels=0), dict(rmse=0.1, max_levels=1), dict(rmse=0.1, max_levels=-2)):

@@ -22,6 +22,8 @@ uses n = γ/|γ| only, so this drift does not reach it
 (tests/test_bodies_vibrating_plane.py::test_unit_vector_drift_is_harmless_and_reported).
 """
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -149,7 +151,7 @@ def norm_drift(sc, y0, key, h, t1, brownian_dt=None):
     return np.asarray(ens.paths), law
 
 
-UPRIGHT_ON_PLANE = {"eps": 0.5, "nu": 1.0, "gravity": 1.0}
+UPRIGHT_ON_PLANE: dict[str, Any] = {"eps": 0.5, "nu": 1.0, "gravity": 1.0}
 
 
 def upright_states(n):

@@ -18,6 +18,7 @@ the velocities is ≥ 0.7/s here (the smallest eigenvalue of ``M⁻¹ D``), so v
 """
 
 import functools
+from typing import Any
 
 import diffrax
 import jax
@@ -251,7 +252,7 @@ def test_explicit_solver_past_the_contact_stability_limit_is_refused():
     takes it (the limit itself: ``test_internal_finite_temperature``)."""
     scene = ChaplyginSleighInBath(model="soft", drift=False, gamma=1000.0, eps=EPS, kT=KT)
     system, y0 = scene.build(), scene.initial_state()
-    run = dict(n_paths=64, t1=0.1)
+    run: dict[str, Any] = dict(n_paths=64, t1=0.1)
     for solver in ("euler", "heun", "weak2"):
         with pytest.raises(ValueError, match="unstable on this system's linear friction"):
             nhsde.simulate(system, y0, KEY, dt=0.01, solver=solver, **run)
@@ -385,7 +386,7 @@ def test_spec_bath_refuses_what_it_cannot_model():
         eps: jnp.ndarray = nhsde.parameter(default=0.5, lower=0.0, doc="friction")
         kT: jnp.ndarray = nhsde.parameter(default=0.5, doc="temperature")
 
-    common = dict(coordinates=("x", "y", "theta"), kinetic_energy=lambda q, v, pi, t, p: 0.5 * (v @ v))
+    common: dict[str, Any] = dict(coordinates=("x", "y", "theta"), kinetic_energy=lambda q, v, pi, t, p: 0.5 * (v @ v))
     with pytest.raises(TypeError, match="soft=function; expected a SoftConstraint"):
         mechanics.MechanicalSpec(params=P(), soft=_knife, **common)
     with pytest.raises(ValueError, match=r"temperature\(p\) returned shape \(2,\); expected \(\)"):

@@ -22,6 +22,7 @@ velocity relaxation rate is ``2ε = 1``/s (the rolling and turning modes; the sl
 """
 
 import functools
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -39,7 +40,7 @@ EPS, KT, MASS, RADIUS, ROLL, TURN = 0.5, 0.5, 1.0, 1.0, 0.5, 0.25
 ROLLING = ROLL + MASS * RADIUS**2  # I + mR²
 SOFT_MASSES = np.array([MASS, MASS, ROLL, TURN])  # T = ½ Σ M_i y_i² on (v, w, θ̇, φ̇)
 N_PATHS = 4096
-PARAMS = dict(eps=EPS, kT=KT, mass=MASS, radius=RADIUS, roll_inertia=ROLL, turn_inertia=TURN)
+PARAMS: dict[str, Any] = dict(eps=EPS, kT=KT, mass=MASS, radius=RADIUS, roll_inertia=ROLL, turn_inertia=TURN)
 
 
 def _mean_se(x):

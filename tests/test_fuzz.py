@@ -261,7 +261,9 @@ SIMULATE_ARGUMENTS = dict(
 
 
 def _simulate_arguments(transform, eps, n_paths, t1, dt, t0, solver, first_path, on_failure):
-    options = dict(n_paths=n_paths, t1=t1, dt=dt, t0=t0, solver=solver, first_path=first_path, on_failure=on_failure)
+    options: dict[str, Any] = dict(
+        n_paths=n_paths, t1=t1, dt=dt, t0=t0, solver=solver, first_path=first_path, on_failure=on_failure
+    )
     case = Case(
         model=lambda p: _ball(p, **options),
         p={"eps": eps},

@@ -1,5 +1,7 @@
 """∂k_xx(t)/∂ε and ∂k_xx(t)/∂ν through simulate: reverse, forward, finite differences, analytic."""
 
+from typing import Any
+
 import diffrax
 import jax
 import jax.numpy as jnp
@@ -128,7 +130,7 @@ def test_reverse_mode_through_excluded_paths_that_overflow_is_finite_and_equals_
 
     n = 128
     y0 = jnp.concatenate([jnp.full((n // 2, 1), 0.1), jnp.full((n // 2, 1), 10.0)])
-    run = dict(n_paths=n, t1=2.0, dt=0.1, save=nhsde.Save(n=2), on_failure="exclude")
+    run: dict[str, Any] = dict(n_paths=n, t1=2.0, dt=0.1, save=nhsde.Save(n=2), on_failure="exclude")
 
     def statistic(a, start=y0, n_paths=n):
         ens = nhsde.simulate(system(a), start, KEY, **(run | dict(n_paths=n_paths)))

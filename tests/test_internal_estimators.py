@@ -2,6 +2,7 @@
 runs beyond the paths one key indexes (``statistics/_paths.py``)."""
 
 import math
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -64,7 +65,7 @@ def test_runs_beyond_the_paths_of_one_key_draw_from_further_keys(monkeypatch):
     system, key = BALL.build(), jax.random.key(7)
     save = nhsde.Save(names=("x",), n=2, paths=True)
     run = RunOptions(t0=0.0, t1=1.0, steps=nhsde.FixedSteps(0.25), solver="euler", save=save)
-    args = dict(dts=(0.25,), brownian_dt=0.25, antithetic=False)
+    args: dict[str, Any] = dict(dts=(0.25,), brownian_dt=0.25, antithetic=False)
     (both,), _ = _paths.coupled_paths(system, Y0, key, run, n_paths=128, first_path=64, **args)
     (first,), _ = _paths.coupled_paths(system, Y0, key, run, n_paths=64, first_path=64, **args)
     (second,), _ = _paths.coupled_paths(system, Y0, jax.random.fold_in(key, 1), run, n_paths=64, **args)
@@ -82,7 +83,7 @@ def test_large_counts_run_in_large_runs_with_the_same_paths(monkeypatch):
     assert _paths.runs(700) == [256, 256, 128, 128]
     steps = nhsde.FixedSteps(0.125, brownian_dt=0.125)
     save = nhsde.Save(names=("x", "u_x"), n=2, paths=True)
-    args = dict(t0=0.0, t1=1.0, steps=steps, solver="euler", save=save, batching=None)
+    args: dict[str, Any] = dict(t0=0.0, t1=1.0, steps=steps, solver="euler", save=save, batching=None)
     got = _paths.solve_paths(BALL.build(), Y0, jax.random.key(5), RunOptions(**args), first_path=64, n_paths=700)
     ens = nhsde.simulate(BALL.build(), Y0, jax.random.key(5), n_paths=700, first_path=64, **args)
     np.testing.assert_array_equal(np.asarray(got), np.asarray(ens.paths))

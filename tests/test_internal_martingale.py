@@ -7,6 +7,8 @@ basis has a sample mean within 4.5 SE of zero (a Bonferroni-safe bound over the 
 probability 7·10⁻⁶).  The system's own components are those of a plain solve with the same key (to rounding).
 """
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -53,7 +55,7 @@ def test_the_fitted_combinations_are_those_of_the_controls_on_the_same_paths(sol
     d, size = system.state_dim, augmented.state_dim - system.state_dim
     beta = jnp.asarray(np.random.default_rng(0).normal(size=(3, size)))
     fitted = fitted_system(augmented, d, beta)
-    args = dict(n_paths=64, t1=1.0, dt=0.125, solver=solver)
+    args: dict[str, Any] = dict(n_paths=64, t1=1.0, dt=0.125, solver=solver)
     full = nhsde.simulate(augmented, jnp.concatenate([y0, jnp.zeros(size)]), jax.random.key(4), **args)
     few = nhsde.simulate(fitted, jnp.concatenate([y0, jnp.zeros(3)]), jax.random.key(4), **args)
     m, combined = np.asarray(full.mean[:, d:]), np.asarray(few.mean[:, d:])

@@ -9,6 +9,7 @@ errors.
 """
 
 import dataclasses
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -141,7 +142,7 @@ def test_the_sleighs_mean_square_displacement_agrees_with_plain_monte_carlo_at_f
     scene = ChaplyginSleigh()
     system = scene.build()
     system = dataclasses.replace(system, observables=system.observables + (("r2", _r2),))
-    args = dict(t1=2.0, dt=0.125, solver="weak2")
+    args: dict[str, Any] = dict(t1=2.0, dt=0.125, solver="weak2")
     est = martingale_control_variate(system, scene.initial_state(), jax.random.key(1), Mean("r2"), n_paths=4096, **args)
     plain = nhsde.simulate(
         system, scene.initial_state(), jax.random.key(2), n_paths=2**15, save=nhsde.Save(names=("r2",), n=2), **args
@@ -174,7 +175,7 @@ def test_multilevel_with_the_martingale_control_on_every_level_is_unbiased_and_c
     telescope to the finest level's mean), its derivatives in ε and ν within 4 SE of ``jax.jacfwd`` of that value,
     and on the same key the level-0 variance ≥ 20× below the plain multilevel's (measured ≈ 400×); the fit's pilot
     paths are counted in the cost."""
-    args = dict(statistic=Mean("x2"), n_paths=(2048, 512, 256), t1=T1, dt=0.25, solver=GAUSS)
+    args: dict[str, Any] = dict(statistic=Mean("x2"), n_paths=(2048, 512, 256), t1=T1, dt=0.25, solver=GAUSS)
     est = multilevel_monte_carlo(BALL_X2, Y0, jax.random.key(7), control="martingale", wrt=("eps", "nu"), **args)
     plain = multilevel_monte_carlo(BALL_X2, Y0, jax.random.key(7), **args)
     exact = _exact_x2(1.0, 1.0, 0.0625)

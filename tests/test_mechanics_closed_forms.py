@@ -5,6 +5,8 @@ vector field each route builds, so the comparisons test the library's equations,
 not a solver.
 """
 
+from typing import Any
+
 import diffrax as dfx
 import equinox as eqx
 import jax
@@ -317,7 +319,12 @@ def test_constraint_residual_reduced_at_round_off_multipliers_bounded():
     scene = VerticalRollingDisk(eps=0.2, nu=0.5)
     spec = scene.spec()
     q0, qd0 = scene.configuration()
-    kw = {"n_paths": 64, "t1": 10.0, "dt": 0.01, "save": nhsde.Save(names=("constraint_residual",), n=11)}
+    kw: dict[str, Any] = {
+        "n_paths": 64,
+        "t1": 10.0,
+        "dt": 0.01,
+        "save": nhsde.Save(names=("constraint_residual",), n=11),
+    }
     report = {}
     for label, route, rate in (
         ("reduced", "reduced", 0.0),

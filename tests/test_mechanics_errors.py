@@ -1,5 +1,7 @@
 """Bad specs and bad use raise clear errors naming the problem."""
 
+from typing import Any
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -23,7 +25,12 @@ def contact(q, pi, t, p):
 
 
 def spec(**kw):
-    base = {"coordinates": ("x", "y", "z"), "params": P(), "kinetic_energy": kinetic, "constraints": contact}
+    base: dict[str, Any] = {
+        "coordinates": ("x", "y", "z"),
+        "params": P(),
+        "kinetic_energy": kinetic,
+        "constraints": contact,
+    }
     return mech.MechanicalSpec(**{**base, **kw})
 
 

@@ -1,5 +1,7 @@
 """Spec-built stochastic systems: the ball rebuilt from its Lagrangian, and random parameters π (S0 (1.2))."""
 
+from typing import Any
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -18,7 +20,7 @@ from nhsde.scenes import (
 from nhsde.statistics import drift_statistics
 
 KEY = jax.random.key(12)
-BALL = {"eps": 0.8, "nu": 1.3, "radius": 0.6, "inertia_ratio": 0.4}
+BALL: dict[str, Any] = {"eps": 0.8, "nu": 1.3, "radius": 0.6, "inertia_ratio": 0.4}
 
 
 def _drift_statistics(system, y0, names, eps, nu):

@@ -8,6 +8,7 @@ the reported bias estimate."""
 import dataclasses
 import logging
 import math
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -23,7 +24,7 @@ DELTA = 1 / 1.4
 BALL = BallOnVibratingPlane(eps=1.0, nu=1.0)
 Y0 = jnp.zeros(4)
 SLEIGH = ChaplyginSleigh(drift=False)
-ENERGY = dict(t1=1.0, dt=0.25, statistic=("mean", "energy"), save=nhsde.Save(names=("energy",)))
+ENERGY: dict[str, Any] = dict(t1=1.0, dt=0.25, statistic=("mean", "energy"), save=nhsde.Save(names=("energy",)))
 
 
 class _Compiles(logging.Handler):
@@ -74,7 +75,7 @@ def test_derivatives_in_eps_and_nu_are_those_of_the_finest_euler_chain():
     derivatives of K_xx(1) and K_uu(1) are those of the Euler chain at h = 1/16 (``K ← A K Aᵀ + Q``, by
     ``jax.jacfwd``), within 4 reported SE (scramblings' spread, levels' variances added); the values are those of
     the same call without ``wrt``."""
-    args = dict(
+    args: dict[str, Any] = dict(
         t1=1.0, dt=0.25, statistic=("cov", "x", "x"), n_points=(256, 128, 64), save=nhsde.Save(names=("x", "u_x"), n=2)
     )
     r = multilevel_quasi_monte_carlo(BALL.build(), Y0, jax.random.key(3), wrt=("eps", "nu"), **args)
@@ -153,7 +154,7 @@ def test_fixed_points_replay_the_same_estimate():
 
 def test_refuses_what_it_cannot_do_naming_the_argument():
     system, key = BALL.build(), jax.random.key(0)
-    base = dict(t1=1.0, statistic=("cov", "x", "x"), rmse=1e-2)
+    base: dict[str, Any] = dict(t1=1.0, statistic=("cov", "x", "x"), rmse=1e-2)
     with pytest.raises(ValueError, match=r"dt=0\.3333.*power of two"):
         multilevel_quasi_monte_carlo(system, Y0, key, dt=1 / 3, **base)
     jumps = dataclasses.replace(system, noise=CompoundPoisson(law=NormalJumps(), intensity=1.0))
@@ -180,7 +181,7 @@ def test_antithetic_points_on_every_level_make_odd_means_exact_and_the_covarianc
     mean of x is exact; K_xx(1) (S0 (3.1)) is within 4 reported SE plus the bias bound, at twice the level costs."""
     exact = float(ball_covariances(jnp.float64(1.0), 1.0, 1.0, DELTA)[0])
     eps = 2e-2 * exact
-    args = dict(t1=1.0, dt=0.25, save=nhsde.Save(names=("x",)), antithetic=True)
+    args: dict[str, Any] = dict(t1=1.0, dt=0.25, save=nhsde.Save(names=("x",)), antithetic=True)
     r = multilevel_quasi_monte_carlo(BALL.build(), Y0, jax.random.key(8), statistic=("cov", "x", "x"), rmse=eps, **args)
     value, se = (float(x) for x in r.value())
     assert abs(value - exact) <= 4 * se + float(r.bias), (value, exact, se, float(r.bias))

@@ -4,6 +4,7 @@ invariance, derivatives, and the refusals.  The generator and the driver: ``test
 
 import dataclasses
 import math
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -156,7 +157,7 @@ def test_gaussian_weak2_on_the_sleigh_has_weak_order_two_and_keeps_the_variance_
 )
 def test_bad_input_is_refused_naming_the_argument(ball, change, named):
     system, y0 = ball
-    kwargs = dict(n_paths=64, t1=T1, dt=DT) | change
+    kwargs: dict[str, Any] = dict(n_paths=64, t1=T1, dt=DT) | change
     with pytest.raises((ValueError, TypeError), match=named.replace("(", r"\(").replace(")", r"\)")):
         quasi_monte_carlo(system, y0, jax.random.key(0), **kwargs)
 

@@ -5,6 +5,8 @@ to a target, and an accuracy result reads any saved statistic.
 The entry points are a registry: a new one joins every test here by one line.
 """
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -18,7 +20,8 @@ SCENE = BallOnVibratingPlane(eps=1.0, nu=1.0, drift=False)
 SYSTEM, Y0, KEY = SCENE.build(), jnp.zeros(2), jax.random.key(3)
 STATISTIC = Covariance("u_x", "u_x")
 RUN = nhsde.RunOptions(t1=0.5, steps=nhsde.FixedSteps(0.125), save=nhsde.Save(n=2))
-FLAT = dict(t1=0.5, dt=0.125, solver="euler", save=nhsde.Save(n=2))  # to_accuracy: run='s solver is the one considered
+# to_accuracy: run='s solver is the one considered
+FLAT: dict[str, Any] = dict(t1=0.5, dt=0.125, solver="euler", save=nhsde.Save(n=2))
 S = nhsde.statistics
 
 ENTRY_POINTS = {

@@ -1,6 +1,7 @@
 """Scenes model only what they need; the sleigh against its energy balance; the CLI."""
 
 import json
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -40,7 +41,7 @@ def test_ball_angular_velocity_from_the_rolling_constraint():
 
 def test_reduced_and_full_ball_agree():
     """The velocity-only state gives the same velocities (same key, same noise channels)."""
-    kw = dict(n_paths=128, t1=1.0, dt=0.01, save=nhsde.Save(names=("u_x", "u_y"), paths=True))
+    kw: dict[str, Any] = dict(n_paths=128, t1=1.0, dt=0.01, save=nhsde.Save(names=("u_x", "u_y"), paths=True))
     a = nhsde.simulate(BallOnVibratingPlane().build(), jnp.zeros(4), jax.random.key(1), **kw)
     b = nhsde.simulate(BallOnVibratingPlane(drift=False).build(), jnp.zeros(2), jax.random.key(1), **kw)
     np.testing.assert_allclose(a.paths, b.paths, rtol=1e-6, atol=1e-7)

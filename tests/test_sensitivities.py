@@ -4,6 +4,8 @@ Against ``jax.jacfwd`` of ``simulate`` (same key, to rounding), against the anal
 covariance (S0 (3.1)) within the reported error, and the reported errors against the spread over independent keys.
 """
 
+from typing import Any
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -136,7 +138,7 @@ def test_bad_input_names_the_argument(kwargs, error, match):
 
 
 RAISED = (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError)  # eqx.filter_jit and eager; jax.jit
-SMALL = dict(wrt=("eps", "nu"), n_paths=64, t1=1.0, save=nhsde.Save(names=("x", "u_x"), n=3))
+SMALL: dict[str, Any] = dict(wrt=("eps", "nu"), n_paths=64, t1=1.0, save=nhsde.Save(names=("x", "u_x"), n=3))
 
 
 def d_cov(system, y0, dt=0.1):

@@ -1,5 +1,7 @@
 """Stiff friction: the exponential solver against Euler–Maruyama, with their exact amplification factors."""
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -45,7 +47,7 @@ def test_stability_region_against_euler_maruyama(eps_dt):
 def test_exponential_solver_bounded_at_eps_dt_100_where_em_diverges():
     eps, dt, nu = 1e4, 0.01, 1.0
     scene = BallOnVibratingPlane(eps=eps, nu=nu, drift=False)
-    args = dict(n_paths=4096, t1=1.0, dt=dt, save=nhsde.Save(n=2))
+    args: dict[str, Any] = dict(n_paths=4096, t1=1.0, dt=dt, save=nhsde.Save(n=2))
     with pytest.raises(ValueError, match="solver 'euler' is unstable"):
         nhsde.simulate(scene.build(), scene.initial_state(), jax.random.key(1), solver="euler", **args)
     ens = nhsde.simulate(

@@ -1,6 +1,7 @@
 """nhsde.sweep: pointwise simulate bitwise, derivatives, failing points named, the plot, ``nhsde sweep``."""
 
 import warnings
+from typing import Any
 
 import matplotlib
 
@@ -18,7 +19,7 @@ from nhsde.scenes import BallOnVibratingPlane
 from nhsde.statistics import moment_sensitivities
 
 EPS, NU = (0.5, 1.0, 2.0), (0.5, 1.5)
-RUN = dict(n_paths=256, t1=2.0, dt=0.025)
+RUN: dict[str, Any] = dict(n_paths=256, t1=2.0, dt=0.025)
 SCENE = BallOnVibratingPlane(drift=False)
 STATISTIC = ("cov", "u_x", "u_x")
 
