@@ -442,13 +442,18 @@ def groups(n: int, seed: int = 0) -> list[Cell]:
 if __name__ == "__main__":  # the table of cells by outcome: python tests/test_matrix.py [N | all] [--groups]
     import argparse
     import json
+    import subprocess
     import time
 
     parser = argparse.ArgumentParser()
     parser.add_argument("n", nargs="?", default=str(len(SAMPLE)), help="a number of cells, or 'all'")
     parser.add_argument("--groups", action="store_true", help="whole groups of inputs, sharing compiled programs")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--jsonl", help="append one line per cell (cell, outcome, detail, seconds) to this file")
+    parser.add_argument(
+        "--jsonl",
+        help="append one line per cell (cell, outcome, detail, seconds, commit) to this file; the cells it holds "
+        "already are not run again (a long run resumes where it stopped), but are counted in the table",
+    )
     args = parser.parse_args()
     jax.config.update("jax_enable_x64", True)
     if args.n == "all":
@@ -456,6 +461,13 @@ if __name__ == "__main__":  # the table of cells by outcome: python tests/test_m
     else:
         cells = (groups if args.groups else sample)(int(args.n), args.seed)
     counts: collections.Counter = collections.Counter()
+    done: dict[str, str] = {}
+    if args.jsonl and Path(args.jsonl).exists():
+        done = {row["cell"]: row["outcome"] for row in map(json.loads, Path(args.jsonl).read_text().splitlines())}
+    counts.update(done[c] for c in map(_id, cells) if c in done)
+    cells = [c for c in cells if _id(c) not in done]
+    here = Path(__file__).parent
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=here, capture_output=True, text=True).stdout
     start = time.monotonic()
     for i, cell in enumerate(cells):
         if i % len(INPUTS) == 0 and args.groups:
@@ -473,11 +485,11 @@ if __name__ == "__main__":  # the table of cells by outcome: python tests/test_m
             print(f"[{i}] {_id(cell)}: {outcome}: {detail}", flush=True)
         if args.jsonl:
             with open(args.jsonl, "a") as f:
-                f.write(json.dumps({"cell": _id(cell), "outcome": outcome, "detail": detail, "s": round(seconds, 2)}))
-                f.write("\n")
+                row = {"cell": _id(cell), "outcome": outcome, "detail": detail, "s": round(seconds, 2)}
+                f.write(json.dumps({**row, "commit": commit.strip()}) + "\n")
         if i % 25 == 0:
             print(f"{i}/{len(cells)} cells, {time.monotonic() - start:.0f} s: {dict(counts)}", flush=True)
-    print(f"\n{len(cells)} cells in {time.monotonic() - start:.0f} s")
+    print(f"\n{len(cells)} cells in {time.monotonic() - start:.0f} s, {len(done)} recorded before")
     print("| outcome | cells |\n|---|---:|")
     for outcome in OUTCOMES:
         print(f"| {outcome} | {counts[outcome]} |")
