@@ -14,7 +14,7 @@ SCRIPT = textwrap.dedent(
     assert len(jax.devices()) == 8, jax.devices()
     for scene in (BallOnVibratingPlane(), ChaplyginSleigh()):
         for dtype in (jnp.float32, jnp.float64):
-            kw: dict[str, Any] = dict(n_paths=1000, t1=1.0, dt=0.01, save=nhsde.Save(paths=True), solver="euler")
+            kw = dict(n_paths=1000, t1=1.0, dt=0.01, save=nhsde.Save(paths=True), solver="euler")
             y0 = scene.initial_state().astype(dtype)
             one = nhsde.simulate(
                 scene.build(), y0, jax.random.key(3), batching=nhsde.Batching(128, jax.devices()[:1]), **kw
