@@ -9,6 +9,7 @@ errors.
 """
 
 import dataclasses
+import math
 from typing import Any
 
 import jax
@@ -207,7 +208,8 @@ def test_to_accuracy_prices_and_runs_multilevel_with_the_martingale_control():
     )
     assert res.choice == "multilevel, weak2-gaussian, martingale control", res.choice
     (chosen,) = [a for a in res.alternatives if a.applies]
-    assert chosen.kappa > 1.0 and "κ =" in chosen.note
+    # κ measured: a ratio of seconds per path-step (the machine's load sets its size, so it is not bounded here)
+    assert 0 < chosen.kappa < math.inf and f"κ = {chosen.kappa:.3g}" in chosen.note
     finest = 0.25 / 2 ** (len(res.estimate.n_paths_per_level) - 1)
     value, se = res.value()
     assert abs(float(value) - float(_exact_x2(1.0, 1.0, finest))) <= 4 * 2e-3, (value, se, finest)
