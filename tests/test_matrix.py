@@ -491,5 +491,5 @@ if __name__ == "__main__":  # the table of cells by outcome: python tests/test_m
             print(f"{i}/{len(cells)} cells, {time.monotonic() - start:.0f} s: {dict(counts)}", flush=True)
     print(f"\n{len(cells)} cells in {time.monotonic() - start:.0f} s, {len(done)} recorded before")
     print("| outcome | cells |\n|---|---:|")
-    for outcome in OUTCOMES:
+    for outcome in (*OUTCOMES, *sorted(set(counts) - set(OUTCOMES))):  # and any recorded by hand (a "hang")
         print(f"| {outcome} | {counts[outcome]} |")
