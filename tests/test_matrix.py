@@ -442,7 +442,9 @@ def groups(n: int, seed: int = 0) -> list[Cell]:
 if __name__ == "__main__":  # the table of cells by outcome: python tests/test_matrix.py [N | all] [--groups]
     import argparse
     import json
+    import os
     import subprocess
+    import threading
     import time
 
     parser = argparse.ArgumentParser()
@@ -453,6 +455,13 @@ if __name__ == "__main__":  # the table of cells by outcome: python tests/test_m
         "--jsonl",
         help="append one line per cell (cell, outcome, detail, seconds, commit) to this file; the cells it holds "
         "already are not run again (a long run resumes where it stopped), but are counted in the table",
+    )
+    parser.add_argument(
+        "--timeout",
+        type=float,
+        default=600.0,
+        help="seconds a cell may take; past it the cell is recorded as a hang and the process exits with status 3 "
+        "(a deadlocked XLA program cannot be interrupted): run the same command again to go on",
     )
     args = parser.parse_args()
     jax.config.update("jax_enable_x64", True)
@@ -469,24 +478,37 @@ if __name__ == "__main__":  # the table of cells by outcome: python tests/test_m
     here = Path(__file__).parent
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=here, capture_output=True, text=True).stdout
     start = time.monotonic()
+
+    def record(cell: Cell, outcome: str, detail: str, seconds: float) -> None:
+        if args.jsonl:
+            with open(args.jsonl, "a") as f:
+                row = {"cell": _id(cell), "outcome": outcome, "detail": detail, "s": round(seconds, 2)}
+                f.write(json.dumps({**row, "commit": commit.strip()}) + "\n")
+
+    def hang(cell: Cell) -> None:
+        print(f"{_id(cell)}: hang (no answer in {args.timeout:.0f} s); run again to go on", flush=True)
+        record(cell, "hang", f"no answer in {args.timeout:.0f} s", args.timeout)
+        os._exit(3)
+
     for i, cell in enumerate(cells):
         if i % len(INPUTS) == 0 and args.groups:
             jax.clear_caches()  # a group's programs are shared within it; memory stays flat over thousands of cells
             _functions.cache_clear()
         began = time.monotonic()
+        watchdog = threading.Timer(args.timeout, hang, (cell,))
+        watchdog.start()
         try:
             outcome, detail = run_cell(cell)
         except Exception as e:  # noqa: BLE001  outside the entry point's call: still a cell that failed foreignly
             outcome, detail = "foreign exception", f"{type(e).__name__} in the comparison: {e}"[:200]
+        finally:
+            watchdog.cancel()
         seconds = time.monotonic() - began
         print(f"  {_id(cell)}: {outcome} ({seconds:.1f} s)", flush=True)
         counts[outcome] += 1
         if outcome not in ("finite and equal", "library error"):
             print(f"[{i}] {_id(cell)}: {outcome}: {detail}", flush=True)
-        if args.jsonl:
-            with open(args.jsonl, "a") as f:
-                row = {"cell": _id(cell), "outcome": outcome, "detail": detail, "s": round(seconds, 2)}
-                f.write(json.dumps({**row, "commit": commit.strip()}) + "\n")
+        record(cell, outcome, detail, seconds)
         if i % 25 == 0:
             print(f"{i}/{len(cells)} cells, {time.monotonic() - start:.0f} s: {dict(counts)}", flush=True)
     print(f"\n{len(cells)} cells in {time.monotonic() - start:.0f} s, {len(done)} recorded before")

@@ -3,10 +3,16 @@
 Routes: (a) reduced Voronets equations, (b) Hamiltonian form, (c) multipliers,
 (d) Gauss's principle.  They are independent computations (T* and the
 nonholonomic term of S0 (1.8); H and its derivatives; Lagrange's equations and a
-Schur complement; Nielsen's form and a Moore–Penrose least-compulsion solve), so
+Schur complement; Nielsen's form and a least-compulsion solve), so
 agreement to rounding at random states checks each against the others.  The
 noise is compared too: how ``V`` enters the accelerations.
+
+Every route's vmapped vector fields call no LAPACK kernel: their solves are the unrolled ones of
+``mechanics._small``.  Two batched LAPACK kernels running at once can each wait for the other's share of XLA's
+CPU thread pool, and on a 2-core machine never return (the moment equations' ``jacfwd`` on the rolling disk did).
 """
+
+import re
 
 import jax
 import jax.numpy as jnp
@@ -85,7 +91,9 @@ def test_routes_give_the_same_accelerations_and_noise(name):
             continue
         form = mech.formulate(spec, route, dependent=scene.dependent)
         both = jax.jit(jax.vmap(lambda q, v, t, f=form: (f.accelerations(q, v, t=t), f.acceleration_noise(q, v, t=t))))
-        results[route] = both(qs, vs, ts)
+        lowered = both.lower(qs, vs, ts)
+        assert not re.findall(r"@lapack_\w+", lowered.as_text()), route
+        results[route] = lowered.compile()(qs, vs, ts)
     ref_acc, ref_noise = results["multipliers"]
     # the states are on the constraints and the accelerations keep them there: d/dt (A q̇ + A0) = 0 (S1 (1.5))
     residual, rate = jax.jit(

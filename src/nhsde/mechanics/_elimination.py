@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._misc import is_concrete
+from . import _small as small
 from ._spec import MechanicalSpec
 
 __all__ = ["Elimination", "choose_dependent", "make_elimination"]
@@ -45,7 +46,7 @@ class Elimination(eqx.Module):
         eye = jnp.eye(len(ind), dtype=dtype)
         if not self.dependent:
             return eye, jnp.zeros(n, dtype), jnp.zeros((0, len(ind)), dtype), jnp.zeros(0, dtype)
-        sol = jnp.linalg.solve(rows[:, dep], jnp.concatenate([rows[:, ind], bias[:, None]], axis=1))
+        sol = small.solve(rows[:, dep], jnp.concatenate([rows[:, ind], bias[:, None]], axis=1))
         b_prime, b_second = -sol[:, :-1], -sol[:, -1]
         psi = jnp.zeros((n, len(ind)), dtype).at[dep].set(b_prime).at[ind].set(eye)
         return psi, jnp.zeros(n, dtype).at[dep].set(b_second), b_prime, b_second

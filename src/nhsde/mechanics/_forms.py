@@ -23,7 +23,6 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import jax.scipy.linalg as jsl
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
@@ -78,18 +77,18 @@ def _inputs(spec, q, qdot, pi=None, t: ArrayLike = 0.0):
 def _checked_state(spec, elim, q, pi, t):
     """``q`` with run-time checks of the mass matrix and the elimination at this state."""
     p = spec.params
-    chol = jnp.linalg.cholesky(spec.inertia(q, pi, t, p))
-    q = eqx.error_if(q, ~jnp.all(jnp.isfinite(chol)), "the mass matrix is singular or indefinite at this state.")
+    pivots = jnp.diagonal(small.cholesky(spec.inertia(q, pi, t, p)))
+    q = eqx.error_if(q, ~jnp.all(pivots > 0), "the mass matrix is singular or indefinite at this state.")
     rows, _ = spec.velocity_constraints(q, pi, t, p)
     if rows.shape[0]:
-        sv = jnp.linalg.svd(rows, compute_uv=False)
         q = eqx.error_if(
-            q, sv[-1] <= 1e-10 * sv[0], "the constraint rows are dependent (rank-deficient) at this state."
+            q, small.rank_deficient(rows), "the constraint rows are dependent (rank-deficient) at this state."
         )
     if elim is not None and elim.dependent:
-        sv = jnp.linalg.svd(rows[:, elim.dep], compute_uv=False)
         q = eqx.error_if(
-            q, sv[-1] <= 1e-10 * sv[0], "the dependent-velocity choice makes B' singular at this state (a_D singular)."
+            q,
+            small.rank_deficient(rows[:, elim.dep]),
+            "the dependent-velocity choice makes B' singular at this state (a_D singular).",
         )
     return q
 
@@ -386,7 +385,7 @@ class GaussForm(_AbstractAllVelocitiesForm):
         spec = self.spec
         q, qdot, pi, t = _inputs(spec, q, qdot, pi, t)
         mass, force = compulsion_terms(spec, q, qdot, pi, t, spec.params)
-        dev = jnp.asarray(qddot, q.dtype) - jnp.linalg.solve(mass, force)
+        dev = jnp.asarray(qddot, q.dtype) - small.spd_solve(mass, force)
         return 0.5 * dev @ mass @ dev
 
 
@@ -505,6 +504,5 @@ def project_velocity(spec: MechanicalSpec, q, qdot, pi=None, t: ArrayLike = 0.0)
     rows, bias = spec.velocity_constraints(q, pi, t, p)
     if rows.shape[0] == 0:
         return qdot
-    chol = jnp.linalg.cholesky(spec.inertia(q, pi, t, p))
-    m_inv_rows = jsl.cho_solve((chol, True), rows.T)
-    return qdot - m_inv_rows @ jnp.linalg.solve(rows @ m_inv_rows, rows @ qdot + bias)
+    m_inv_rows = small.spd_solve(spec.inertia(q, pi, t, p), rows.T)
+    return qdot - m_inv_rows @ small.spd_solve(rows @ m_inv_rows, rows @ qdot + bias)

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import jax.scipy.linalg as jsl
 
 from . import _small as small
 from ._spec import MechanicalSpec
@@ -83,7 +82,7 @@ def _with_reactions(spec: MechanicalSpec, q, pi, t, p):
         if spec.servo is None:  # D = A: the Schur complement A M⁻¹ Aᵀ is symmetric positive definite
             lam = small.spd_solve(schur, target - small.matmul(rows, free))
         else:
-            lam = jnp.linalg.solve(schur, target - small.matmul(rows, free))
+            lam = small.solve(schur, target - small.matmul(rows, free))
         return free + small.matmul(response, lam), lam
 
     return solve
@@ -123,20 +122,23 @@ def _least_compulsion(spec: MechanicalSpec, mass, q, pi, t, p):
     """``solve(F, r_A, r_C) -> q̈``: the minimiser of the compulsion over ``A q̈ = r_A`` (S1 (2.10)).
 
     Udwadia–Kalaba form of the minimiser: with ``M_N = L Lᵀ``,
-    ``q̈ = a + L⁻ᵀ (A L⁻ᵀ)⁺ (r_A − A a)``, ``a = M_N⁻¹ F`` (Moore–Penrose inverse).
+    ``q̈ = a + L⁻ᵀ (A L⁻ᵀ)⁺ (r_A − A a)``, ``a = M_N⁻¹ F`` (Moore–Penrose inverse).  The rows ``A`` have full rank
+    (checked at the initial state), so ``(A L⁻ᵀ)⁺ = L⁻¹Aᵀ (A M_N⁻¹ Aᵀ)⁻¹`` and
+    ``q̈ = a + M_N⁻¹Aᵀ (A M_N⁻¹ Aᵀ)⁻¹ (r_A − A a)``: small unrolled factorisations, no SVD.
     Servo-constraints (S1 §3): their reactions ``realisationᵀ μ`` join the force
     and ``μ`` is fixed by ``C q̈ = r_C``.
     """
     a_rows, _ = spec.ideal_constraints(q, pi, t, p)
     c_rows, _, d_rows = spec.servo_constraints(q, pi, t, p)
     chol = small.cholesky(mass)
-    k_pinv = jnp.linalg.pinv(jsl.solve_triangular(chol, a_rows.T, lower=True).T) if spec.n_ideal else None
+    inverse_rows = small.cho_solve(chol, a_rows.T)  # M_N⁻¹ Aᵀ
+    schur = small.matmul(a_rows, inverse_rows)
 
     def least(f, t_a):
         free = small.cho_solve(chol, f)
-        if k_pinv is None:
+        if not spec.n_ideal:
             return free
-        return free + jsl.solve_triangular(chol.T, k_pinv @ (t_a - a_rows @ free), lower=False)
+        return free + small.matmul(inverse_rows, small.spd_solve(schur, t_a - small.matmul(a_rows, free)))
 
     if spec.servo is None:
         return lambda f, t_a, t_c: least(f, t_a)
@@ -144,7 +146,8 @@ def _least_compulsion(spec: MechanicalSpec, mass, q, pi, t, p):
 
     def solve(f, t_a, t_c):
         acc = least(f, t_a)
-        return acc + response @ jnp.linalg.solve(c_rows @ response, t_c - c_rows @ acc)
+        mu = small.solve(small.matmul(c_rows, response), t_c - small.matmul(c_rows, acc))
+        return acc + small.matmul(response, mu)
 
     return solve
 

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 from jax import Array
 
-__all__ = ["UNROLL_UP_TO", "cho_solve", "cholesky", "matmul", "psd_factor", "spd_solve"]
+__all__ = ["UNROLL_UP_TO", "cho_solve", "cholesky", "matmul", "psd_factor", "rank_deficient", "solve", "spd_solve"]
 
 UNROLL_UP_TO = 8
 """The largest size factorised entry by entry (the work grows as n³ in the program's size)."""
@@ -78,6 +78,51 @@ def cho_solve(chol: Array, b: Array) -> Array:
 def spd_solve(a: Array, b: Array) -> Array:
     """``x`` with ``a x = b`` for a symmetric positive-definite ``a``."""
     return cho_solve(cholesky(a), b)
+
+
+def solve(a: Array, b: Array) -> Array:
+    """``x`` with ``a x = b`` for a general nonsingular ``a`` (``(n, n)``); ``b`` is ``(n,)`` or ``(n, m)``.
+
+    Gaussian elimination with partial pivoting (the row of largest ``|a_ik|`` at each column, chosen by ``argmax``
+    and moved by selection, so the program's shape is static), then back substitution.  Besides fusing, it keeps
+    LAPACK's batched ``getrf``/``trsm`` out of vmapped vector fields: on a machine with few cores two of those
+    kernels running at once can each wait on the other's share of XLA's CPU thread pool, and never return.
+    """
+    n = a.shape[-1]
+    if n > UNROLL_UP_TO or not n:
+        return jnp.linalg.solve(a, b) if n else b
+    vector = b.ndim == 1
+    augmented = jnp.concatenate([a, b[:, None] if vector else b], axis=1)
+    rows = [augmented[i] for i in range(n)]
+    for k in range(n):
+        below = jnp.stack(rows[k:])
+        choice = jnp.argmax(jnp.abs(below[:, k]))
+        pivot = below[choice]
+        swapped = [jnp.where(choice == i - k, rows[k], rows[i]) for i in range(k + 1, n)]
+        rows[k] = pivot
+        rows[k + 1 :] = [row - (row[k] / pivot[k]) * pivot for row in swapped]
+    x: list[Array] = [rows[0][n:]] * n
+    for i in reversed(range(n)):
+        x[i] = (rows[i][n:] - sum((rows[i][k] * x[k] for k in range(i + 1, n)), jnp.zeros_like(x[i]))) / rows[i][i]
+    out = jnp.stack(x)
+    return out[:, 0] if vector else out
+
+
+def rank_deficient(rows: Array) -> Array:
+    """Whether the rows of ``rows`` (``(m, n)``) are linearly dependent, to rounding.
+
+    Cholesky's pivots of the Gram matrix ``G = rows rowsᵀ``: the ``j``-th is the squared distance of row ``j`` from
+    the span of the rows before it, ``G_jj`` minus terms no larger than ``G_jj``, so dependent rows give one at
+    rounding level (at or below ``16 m ε G_jj``, or not a number) however the rows are scaled.  Unrolled like
+    :func:`cholesky`: no SVD under ``vmap``.
+    """
+    m = rows.shape[0]
+    gram = matmul(rows, rows.T)
+    if m > UNROLL_UP_TO:
+        sv = jnp.linalg.svd(rows, compute_uv=False)
+        return sv[-1] <= jnp.sqrt(16 * m * jnp.finfo(rows.dtype).eps) * sv[0]
+    pivots = jnp.diagonal(cholesky(gram)) ** 2
+    return ~jnp.all(pivots > 16 * m * jnp.finfo(rows.dtype).eps * jnp.diagonal(gram))
 
 
 def psd_factor(a: Array) -> Array:

@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import _small as small
 from ._elimination import Elimination, make_elimination
 from ._spec import MechanicalSpec
 
@@ -151,7 +152,7 @@ class StateSpace(eqx.Module):
         if report.singular:
             raise SingularStateSpaceError(report)
         m_gen, k = self.generalised_system(xi, t)
-        return jnp.linalg.solve(m_gen, k)
+        return small.solve(m_gen, k)
 
 
 def state_space(spec: MechanicalSpec, *, dependent=None, reference=None) -> StateSpace:

@@ -58,8 +58,8 @@ class ControlPilot:
     with the control (``Y − βC``) at ``pilot_paths`` samples on each pilot level, its level variances ``V_ℓ`` and
     the bias model ``E[Y(h) − β(C(h) − E C)] − S ≈ C h^p`` of its level terms, bounded as the solver's pilot does,
     and ``kappa``: the seconds of its path-steps over those of the solver's plain pilot (one more run of each
-    compiled program; a controlled path-step also takes the drift's Jacobian-vector product, on Chaplygin's ball and
-    the body 1.6–2× a plain one)."""
+    compiled program, at least 1: a controlled path-step does a plain one's work and also takes the drift's
+    Jacobian-vector product, on Chaplygin's ball and the body 1.6–2× a plain one)."""
 
     level_variances: tuple[float, ...]
     bias_bound: float
@@ -152,7 +152,7 @@ class Pricing:
             variances,
             level_bias_bound(terms, [v / self.pilot_paths for v in variances[1:]], self.h0, p),
             -terms[-1] / (h_fine**p * (2**p - 1)),  # Ŷ_L ≈ −C h_L^p (2^p − 1)
-            rate / self.pilots[cand.label].seconds_per_path_step,
+            max(rate / self.pilots[cand.label].seconds_per_path_step, 1.0),  # below 1 is timing noise
         )
         self.control_pilots[label] = pilot
         return pilot, res.cost.path_steps + timed.cost.path_steps
