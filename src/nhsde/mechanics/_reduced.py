@@ -27,7 +27,7 @@ def _velocity(spec, elim, pi, p, w):
 
     def fn(q, t):
         psi, b, _, _ = elim.velocity_basis(spec, q, pi, t, p)
-        return small.matmul(psi, w) + b
+        return psi @ w + b
 
     return fn
 
@@ -39,7 +39,7 @@ def _t_star(spec, elim, pi, p):
 
 def _combine(elim, b_prime, g):
     """``g_s + Σ_i B'_is g_i``: a covector on q projected on the independent displacements."""
-    return g[elim.ind] + small.matmul(b_prime.T, g[elim.dep])
+    return g[elim.ind] + b_prime.T @ g[elim.dep]
 
 
 def _nonholonomic(spec, elim, q, w, v, psi, pi, t, p):
@@ -50,10 +50,10 @@ def _nonholonomic(spec, elim, q, w, v, psi, pi, t, p):
     if not elim.dependent:
         return jnp.zeros_like(w)
     (bp_q, bp_t), (bpp_q, _) = jax.jacfwd(lambda q, t: elim.velocity_basis(spec, q, pi, t, p)[2:], argnums=(0, 1))(q, t)
-    b_prime_dot = jnp.stack([small.matmul(bp_q[i], v) for i in range(bp_q.shape[0])]) + bp_t
-    jac_lambda = jnp.stack([small.matmul(bp_q[i].transpose(1, 0), w) for i in range(bp_q.shape[0])]) + bpp_q
+    b_prime_dot = bp_q @ v + bp_t
+    jac_lambda = jnp.einsum("isk,s->ik", bp_q, w) + bpp_q
     p_dependent = jax.grad(spec.kinetic, argnums=1)(q, v, pi, t, p)[elim.dep]
-    return small.matmul((b_prime_dot - small.matmul(jac_lambda, psi)).T, p_dependent)
+    return (b_prime_dot - jac_lambda @ psi).T @ p_dependent
 
 
 def voronets(spec: MechanicalSpec, elim: Elimination, q, w, pi, t, p):
@@ -65,16 +65,16 @@ def voronets(spec: MechanicalSpec, elim: Elimination, q, w, pi, t, p):
     """
     t_star = _t_star(spec, elim, pi, p)
     psi, b, b_prime, _ = elim.velocity_basis(spec, q, pi, t, p)
-    v = small.matmul(psi, w) + b
-    g = jax.hessian(lambda w: spec.kinetic(q, small.matmul(psi, w) + b, pi, t, p))(w)
+    v = psi @ w + b
+    g = jax.hessian(lambda w: spec.kinetic(q, psi @ w + b, pi, t, p))(w)
     (grad_t, _), (_, d_momentum) = jax.jvp(lambda q, t: jax.grad(t_star, argnums=(0, 1))(q, w, t), (q, t), (v, _one(t)))
     grad_l = grad_t - jax.grad(spec.potential_energy)(q, pi, t, p)
-    grad_r = jax.grad(lambda w: spec.rayleigh(q, small.matmul(psi, w) + b, pi, t, p))(w)
+    grad_r = jax.grad(lambda w: spec.rayleigh(q, psi @ w + b, pi, t, p))(w)
     rhs = (
         -d_momentum
         + _combine(elim, b_prime, grad_l)
         - grad_r
-        + small.matmul(psi.T, spec.disturbing_force(q, v, pi, t, p))
+        + psi.T @ spec.disturbing_force(q, v, pi, t, p)
         + _nonholonomic(spec, elim, q, w, v, psi, pi, t, p)
     )
     return g, rhs, v
@@ -98,8 +98,7 @@ def reduced_noise(spec: MechanicalSpec, elim: Elimination, q, v, pi, t, p):
     """``(G, Φ)``: ``G = Ψ_δᵀ M Ψ`` (``= ∂²T*/∂q̇'²`` for ideal constraints) and ``Φ = Ψ_δᵀ Q²``."""
     psi = elim.velocity_basis(spec, q, pi, t, p)[0]
     psi_d = psi if spec.servo is None else elim.displacement_basis(spec, q, pi, t, p)
-    mass = spec.inertia(q, pi, t, p)
-    return small.matmul(psi_d.T, small.matmul(mass, psi)), small.matmul(psi_d.T, spec.random_force(q, v, pi, t, p))
+    return psi_d.T @ spec.inertia(q, pi, t, p) @ psi, psi_d.T @ spec.random_force(q, v, pi, t, p)
 
 
 def momentum(spec: MechanicalSpec, elim: Elimination, q, w, pi, t, p):
