@@ -459,9 +459,10 @@ if __name__ == "__main__":  # the table of cells by outcome: python tests/test_m
     parser.add_argument(
         "--timeout",
         type=float,
-        default=600.0,
-        help="seconds a cell may take; past it the cell is recorded as a hang and the process exits with status 3 "
-        "(a deadlocked XLA program cannot be interrupted): run the same command again to go on",
+        default=300.0,
+        help="seconds a cell may run without using the CPU (a slow compilation, at low priority too, is not a hang): "
+        "past them the cell is recorded as a hang and the process exits with status 3 (a deadlocked XLA program "
+        "cannot be interrupted): run the same command again to go on",
     )
     args = parser.parse_args()
     jax.config.update("jax_enable_x64", True)
@@ -485,24 +486,30 @@ if __name__ == "__main__":  # the table of cells by outcome: python tests/test_m
                 row = {"cell": _id(cell), "outcome": outcome, "detail": detail, "s": round(seconds, 2)}
                 f.write(json.dumps({**row, "commit": commit.strip()}) + "\n")
 
-    def hang(cell: Cell) -> None:
-        print(f"{_id(cell)}: hang (no answer in {args.timeout:.0f} s); run again to go on", flush=True)
-        record(cell, "hang", f"no answer in {args.timeout:.0f} s", args.timeout)
-        os._exit(3)
+    def watch(cell: Cell, done: threading.Event) -> None:
+        """A deadlock's signature: no answer, and the process's CPU time (all threads) standing still."""
+        began, cpu = time.monotonic(), time.process_time()
+        while not done.wait(args.timeout):
+            if time.process_time() - cpu < 0.01 * args.timeout:
+                waited = time.monotonic() - began
+                print(f"{_id(cell)}: hang (no CPU used in {args.timeout:.0f} s); run again to go on", flush=True)
+                record(cell, "hang", f"no answer in {waited:.0f} s, no CPU used in the last {args.timeout:.0f}", waited)
+                os._exit(3)
+            cpu = time.process_time()
 
     for i, cell in enumerate(cells):
         if i % len(INPUTS) == 0 and args.groups:
             jax.clear_caches()  # a group's programs are shared within it; memory stays flat over thousands of cells
             _functions.cache_clear()
         began = time.monotonic()
-        watchdog = threading.Timer(args.timeout, hang, (cell,))
-        watchdog.start()
+        answered = threading.Event()
+        threading.Thread(target=watch, args=(cell, answered), daemon=True).start()
         try:
             outcome, detail = run_cell(cell)
         except Exception as e:  # noqa: BLE001  outside the entry point's call: still a cell that failed foreignly
             outcome, detail = "foreign exception", f"{type(e).__name__} in the comparison: {e}"[:200]
         finally:
-            watchdog.cancel()
+            answered.set()
         seconds = time.monotonic() - began
         print(f"  {_id(cell)}: {outcome} ({seconds:.1f} s)", flush=True)
         counts[outcome] += 1
