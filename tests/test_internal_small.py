@@ -40,7 +40,8 @@ def test_the_unrolled_products_are_matmul_to_rounding():
 
 
 def test_the_unrolled_general_solve_pivots_and_is_lapacks_to_rounding():
-    """``small.solve`` (Gaussian elimination with partial pivoting, unrolled) against LAPACK's, with a zero leading entry (which needs the pivot), one or several right-hand sides, in both modes."""
+    """``small.solve`` (Gaussian elimination with partial pivoting, unrolled) against LAPACK's, with a zero leading
+    entry (which needs the pivot), one or several right-hand sides, in both modes."""
 
     @jax.jit
     def both(a, b, d):
