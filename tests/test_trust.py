@@ -265,10 +265,10 @@ def test_cli_run_where_every_path_overflows_prints_one_line(tmp_path):
     out = subprocess.run(command, capture_output=True, text=True, env=env, cwd=tmp_path, timeout=300)
     assert out.returncode == 1, out.stderr
     assert out.stderr.strip().splitlines() == [
-        "nhsde simulate: moment_sensitivities: 64 of 64 paths failed (a non-finite state or tangent, or a solver "
-        "error): fewer than 4 paths succeeded; statistics and their standard errors need ≥ 4; nu = 1e+30 is beyond "
-        "4.29e+09, where fourth moments overflow in float32: the scale is the likely cause, not the step; rescale the "
-        "units (or use float64 states)."
+        "nhsde simulate: moment_sensitivities: 64 of 64 paths failed (a non-finite state or tangent, a blow-up, or "
+        "a solver error): fewer than 4 paths succeeded; statistics and their standard errors need ≥ 4; nu = 1e+30 is "
+        "beyond 4.29e+09, where fourth moments overflow in float32: the scale is the likely cause, not the step; "
+        "rescale the units (or use float64 states)."
     ]  # (the advice was "try a smaller dt or a stiffer-stable solver": the cause is the scale, not the step)
 
 
@@ -290,3 +290,38 @@ def test_the_warned_variance_factor_is_what_the_solver_delivers(solver, factor):
         ens = nhsde.simulate(scene.build(), scene.initial_state(), KEY, n_paths=4096, t1=1.0, dt=0.05, solver=solver)
     exact = float(nhsde.scenes.ball_covariances(1.0, 10.0, 1.0, 5 / 7)[2])  # k_uu at 2εt = 20: stationary
     assert abs(float(ens.cov[-1, 0, 0]) - factor * exact) < 4 * float(ens.cov_se[-1, 0, 0])
+
+
+def test_a_blow_up_with_finite_values_fails_its_paths_plain_and_under_jit_grad():
+    """Beghin's servo plate (S1 (3.4)): β̈ = (R b/(b² + k²)) β̇² + …, a Riccati blow-up once a kick makes β̇ large.
+    At ν = 1e3 the Milstein paths grew doubly exponentially to 1e56 and stayed there (α − β rounded to nothing), so
+    simulate returned finite means of 1e54, and value_and_grad numbers 0.45 % from the plain call's."""
+    scene = nhsde.scenes.BeghinPlate(eps=1.0, nu=1e3)
+    system, y0 = scene.build(), scene.initial_state()
+
+    def mean_rate(eps):
+        run = system.replace_params(eps=eps)
+        ens = nhsde.simulate(run, y0, KEY, n_paths=16, t1=0.25, dt=0.0125, solver="milstein")
+        return ens.mean[-1, 2]
+
+    with pytest.raises(nhsde.SimulationError, match="paths failed .*a blow-up"):
+        mean_rate(1.0)
+    with pytest.raises(RUNTIME_ERRORS, match="a blow-up"):
+        jax.block_until_ready(jax.jit(jax.grad(mean_rate))(1.0))
+
+
+def test_a_kick_from_rest_is_not_a_blow_up():
+    """From y = 0 the first step's noise multiplies the state's size without bound; it is one step, not two running:
+    du = −u dt + √ν dW keeps every path, its variance ν(1 − e^(−2t))/2 at t = 1 within 4 standard errors."""
+    system = StochasticSystem(
+        drift_fn=lambda t, y, p: -y,
+        diffusion_fn=lambda t, y, p: jnp.sqrt(p) * jnp.ones((1, 1), y.dtype),
+        params=jnp.asarray(1e6),
+        layout=StateLayout(("u",), ("velocity",)),
+        noise_dim=1,
+        additive_noise=True,
+    )
+    ens = nhsde.simulate(system, jnp.zeros(1), KEY, n_paths=1024, t1=1.0, dt=0.01)
+    assert ens.n_failed == 0
+    exact = 1e6 * (1 - np.exp(-2.0)) / 2 * 1.0  # Euler's bias at h = 0.01 is O(h): below 4 se of 1024 paths
+    assert abs(float(ens.cov[-1, 0, 0]) - exact) < 4 * float(ens.cov_se[-1, 0, 0])

@@ -39,7 +39,7 @@ MIN_PATHS = 4
 
 
 class SimulationError(RuntimeError):
-    """Paths failed (non-finite state or a solver error code) and ``on_failure='raise'``."""
+    """Paths failed (non-finite state, a blow-up or a solver error code) and ``on_failure='raise'``."""
 
 
 class StationaryVarianceWarning(UserWarning):
@@ -61,8 +61,8 @@ class SimulationResult(eqx.Enumeration):
         "solver='exponential', which is stable at any step."
     )
     paths_failed = (
-        "some paths failed (non-finite state or solver error); try a smaller dt, a stiffer-stable solver, or "
-        "on_failure='exclude' to inspect them."
+        "some paths failed (non-finite state, a blow-up, or solver error); try a smaller dt, a stiffer-stable "
+        "solver, or on_failure='exclude' to inspect them."
     )
     too_few_paths = (
         f"fewer than {MIN_PATHS} paths succeeded; statistics and their standard errors need ≥ {MIN_PATHS}: try a "
@@ -357,7 +357,7 @@ class Ensemble(AbstractMoments):
     ``mean[i]``, ``cov[i]`` are the sample mean and (unbiased) covariance over the
     paths that did not fail, at ``ts[i]``; ``mean_se``, ``cov_se`` their
     Monte-Carlo standard errors; ``sums`` the moment sums they come from.
-    ``n_failed`` paths failed (non-finite state, a solver error code, or saved
+    ``n_failed`` paths failed (non-finite state, a blow-up, a solver error code, or saved
     values whose fourth power overflows the precision); failed paths never enter
     a statistic.  With ``Save(paths=True)``, ``paths`` holds the per-path values
     and ``failed[p]`` marks path ``p`` (a failed path keeps its last finite

@@ -66,6 +66,9 @@ from ._weak import WeakIncrement
 __all__ = ["MAX_PATH_INDEX", "MIN_PATHS", "check_on_host", "simulate", "stable_step"]
 
 MAX_PATH_INDEX = 2**31 - 1
+BLOW_UP = 1e3
+"""A path fails where its state's size (largest component) exceeds this times the largest it had, two steps running:
+a finite-time blow-up (or a step far too large for the dynamics), whose finite values are rounding, not a solution."""
 """Paths ``0 … MAX_PATH_INDEX − 1`` of a key have distinct noise (path indices are 32-bit integers)."""
 
 
@@ -141,32 +144,47 @@ def _fixed_chunk(
         drift = dfx.ODETerm(lambda t, y, args: system.drift_fn(t_start + t, y, args))
         return dfx.MultiTerm(drift, dfx.ControlTerm(lambda t, y, args: system.diffusion_fn(t_start + t, y, args), path))
 
-    def lane_step(y, y_start, alive, t, increment):
+    def lane_step(y, y_start, alive, grew, peak, t, increment):
         # A failed lane keeps its last finite state and is excluded from every statistic.  It is no
         # longer stepped from that state (where the step overflows) but from its constant start, so
         # its zero cotangents meet finite Jacobians: reverse-mode gradients equal forward mode's.
         y_in = jnp.where(alive, y, jax.lax.stop_gradient(y_start))
         y1, _, _, _, result = solver.step(terms(increment, t), 0.0 * dt, dt, y_in, params, solver_state, False)
-        good = (result == dfx.RESULTS.successful) & jnp.all(jnp.isfinite(y1))
-        return jnp.where(good & alive, y1, y), good
+        # a blow-up: the state's size beyond BLOW_UP times the largest it had, two steps running (a growth rate r
+        # with r·dt ≳ 7 sustained); a path near zero is measured against the size it had before
+        size = jax.lax.stop_gradient(jnp.max(jnp.abs(y1)))
+        grows = size > BLOW_UP * peak
+        good = (result == dfx.RESULTS.successful) & jnp.all(jnp.isfinite(y1)) & ~(grows & grew)
+        return jnp.where(good & alive, y1, y), good, grows, jnp.maximum(peak, size)
 
-    def block_step(y, y_start, alive, k, block_key, block):
+    def _first_step_size(y):
+        # the size a path has or reaches in a step from its start: |y0| + |f| dt + |g| √dt there (from rest, the
+        # first step's noise is no blow-up however small or large its draw)
+        f, g = system.drift_fn(t0, y, params), system.diffusion_fn(t0, y, params)
+        sizes = [
+            jnp.max(jnp.abs(y)),
+            jnp.max(jnp.abs(f)) * dt,
+            *(jnp.max(jnp.abs(a)) * jnp.sqrt(dt) for a in jax.tree.leaves(g)),
+        ]
+        return jax.lax.stop_gradient(sum(sizes))
+
+    def block_step(y, y_start, alive, grew, peak, k, block_key, block):
         # one draw per block; each lane gets its row through vmap
         increments = system.noise.block_increment(
             block_key, block, k, base_dt, (system.noise_dim,), grid.substeps, needs.levy_area
         )
         t = t0 + k.astype(dtype) * dt
-        return jax.vmap(lane_step, in_axes=(0, 0, 0, None, 0))(y, y_start, alive, t, increments)
+        return jax.vmap(lane_step, in_axes=(0, 0, 0, 0, 0, None, 0))(y, y_start, alive, grew, peak, t, increments)
 
-    step = jax.vmap(block_step, in_axes=(0, 0, 0, None, 0, 0))
+    step = jax.vmap(block_step, in_axes=(0, 0, 0, 0, 0, None, 0, 0))
 
     def interval(carry, j):
-        y, ok, meter_state = carry
+        y, ok, grew, peak, meter_state = carry
 
         def body(_, state):
-            y, ok, k = state
-            y1, good = step(y, y_start, ok, k, keys, blocks)
-            return y1, ok & good, k + 1
+            y, ok, grew, peak, k = state
+            y1, good, grows, peak = step(y, y_start, ok, grew, peak, k, keys, blocks)
+            return y1, ok & good, grows, peak, k + 1
 
         def polled(_, state):  # Ctrl-C: the host is asked once per POLL_STEPS steps, outside the step loop
             jax.debug.callback(poll)
@@ -181,17 +199,17 @@ def _fixed_chunk(
 
         # the step counter rides in the carry: no per-step arrays, memory independent of steps (with trip counts
         # as data the loops are while loops, with static ones scans)
-        state = (y, ok, j.astype(jnp.int32) * per_save)
+        state = (y, ok, grew, peak, j.astype(jnp.int32) * per_save)
         if plan.poll:  # both loops always, an empty one included: the program does not depend on the steps
             state = jax.lax.fori_loop(0, per_save // POLL_STEPS, polled, state)
             jax.debug.callback(poll)
-            y, ok, _ = steps(per_save % POLL_STEPS, state)
+            y, ok, grew, peak, _ = steps(per_save % POLL_STEPS, state)
         else:
-            y, ok, _ = steps(per_save, state)
+            y, ok, grew, peak, _ = steps(per_save, state)
         done = chunk_index * plan.intervals + j + 1
         meter_state = meter.step(meter_state, jnp.asarray(done, dtype) / total_ticks)
         t = t0 + ((j + 1).astype(jnp.int32) * per_save).astype(dtype) * dt
-        return (y, ok, meter_state), observe(t, y, params)
+        return (y, ok, grew, peak, meter_state), observe(t, y, params)
 
     y = y_start = y0.reshape(nb, BLOCK, -1)
     # The solvers used here keep no state between steps: init runs diffrax's checks and computes what depends on the
@@ -204,7 +222,9 @@ def _fixed_chunk(
     ok = jnp.all(jnp.isfinite(y), axis=-1)
     first_obs = observe(t0, y, params)
     interval = jax.checkpoint(interval) if plan.checkpoint else interval
-    (_, ok, meter_state), rest = jax.lax.scan(interval, (y, ok, meter_state), jnp.arange(plan.intervals))
+    grew, peak = jnp.zeros(ok.shape, bool), jax.vmap(jax.vmap(_first_step_size))(y)
+    carry = (y, ok, grew, peak, meter_state)
+    (_, ok, _, _, meter_state), rest = jax.lax.scan(interval, carry, jnp.arange(plan.intervals))
     obs = jnp.concatenate([first_obs[None], rest], axis=0)  # (n_save, nb, BLOCK, k)
     obs = jnp.moveaxis(obs, 0, 2).reshape(plan.chunk, plan.n_save, -1)
     return obs, ~ok.reshape(plan.chunk), meter_state
