@@ -313,9 +313,9 @@ def test_a_blow_up_with_finite_values_fails_its_paths_plain_and_under_jit_grad()
 @pytest.mark.parametrize("switched_on", [False, True], ids=["noise on", "noise switched on from 0"])
 def test_a_kick_from_rest_is_not_a_blow_up(switched_on):
     """From u = 0 a step's noise multiplies the state's size without bound, and a small first draw makes the next
-    step's ratio large: du = −u dt + σ(t) dW keeps every path, its variance ∫₀¹ e^(−2(1−s)) σ(s)² ds within 4
-    standard errors.  Measured against the state before, without the largest size and the first kick's exemption,
-σ = 1e3 lost 1 path in 1024 and σ = sin t (zero at the start) 1 in 800."""
+        step's ratio large: du = −u dt + σ(t) dW keeps every path, its variance ∫₀¹ e^(−2(1−s)) σ(s)² ds within 4
+        standard errors.  Measured against the state before, without the largest size and the first kick's exemption,
+    σ = 1e3 lost 1 path in 1024 and σ = sin t (zero at the start) 1 in 800."""
     sigma = (lambda t: jnp.sin(t)) if switched_on else (lambda t: 1e3 + 0 * t)
     system = StochasticSystem(
         drift_fn=lambda t, y, p: -p * y,
