@@ -265,8 +265,9 @@ def test_cli_run_where_every_path_overflows_prints_one_line(tmp_path):
     out = subprocess.run(command, capture_output=True, text=True, env=env, cwd=tmp_path, timeout=300)
     assert out.returncode == 1, out.stderr
     assert out.stderr.strip().splitlines() == [
-        "nhsde simulate: moment_sensitivities: 64 of 64 paths failed (a non-finite state or tangent, a blow-up, or "
-        "a solver error): fewer than 4 paths succeeded; statistics and their standard errors need ≥ 4; nu = 1e+30 is "
+        "nhsde simulate: moment_sensitivities: 64 of 64 paths failed (or their tangents were not finite): fewer than 4 "
+        "paths succeeded (the others failed on a non-finite state, a blow-up, an angle past its precision's "
+        "resolution, or a solver error); statistics and their standard errors need ≥ 4; nu = 1e+30 is "
         "beyond 4.29e+09, where fourth moments overflow in float32: the scale is the likely cause, not the step; "
         "rescale the units (or use float64 states)."
     ]  # (the advice was "try a smaller dt or a stiffer-stable solver": the cause is the scale, not the step)
@@ -330,3 +331,27 @@ def test_a_kick_from_rest_is_not_a_blow_up(switched_on):
     s = np.linspace(0.0, 1.0, 100_001)
     exact = np.trapezoid(np.exp(-2 * (1 - s)) * np.asarray(sigma(s)) ** 2, s)  # Euler's O(h) bias: below 4 se
     assert abs(float(ens.cov[-1, 0, 0]) - exact) < 4 * float(ens.cov_se[-1, 0, 0])
+
+
+def test_an_angle_past_its_precision_fails_its_path_plain_and_under_jit_grad():
+    """The vertical disk turning at φ̇ = Ω (ν = 0, ε = 1e-3), read by the constraints through cos φ and sin φ; Euler
+    steps h give φ̇ₙ = Ω rⁿ (r = 1 − 2εh) and φ_N = h Ω (1 − r^N)/(1 − r).  In float32 an angle resolves to
+    ``eps·|φ|``: at 8e3 rad (below 10⁻³/eps = 8.4e3) the paths run and φ_N is the closed form within N roundings of
+    8e3; at 9e3 rad they fail, plain and under ``jit(grad)``.  Unchecked, a disk kicked by ν = 1e30 turned 1e14 rad
+    in 0.25 s in float64, and grad and jacfwd of its statistics parted by 10×."""
+    system = nhsde.scenes.VerticalRollingDisk(eps=1e-3, nu=0.0).build()
+    assert system.layout.angles == ("phi",)
+    h, n = 0.01, 100
+
+    def heading(eps, rate):
+        y0 = jnp.asarray([0.0, 0.0, 0.0, 0.0, 1.0, rate], jnp.float32)
+        ens = nhsde.simulate(system.replace_params(eps=eps), y0, KEY, n_paths=64, t1=n * h, dt=h, solver="euler")
+        return ens.mean[-1, 3]
+
+    eps = jnp.asarray(1e-3, jnp.float32)
+    r = 1 - 2e-3 * h
+    assert abs(float(heading(eps, 8e3)) - h * 8e3 * (1 - r**n) / (1 - r)) < n * float(jnp.spacing(jnp.float32(8e3)))
+    with pytest.raises(nhsde.SimulationError, match="64 of 64 paths failed.*an angle past its precision's resolution"):
+        heading(eps, 9e3)
+    with pytest.raises(RUNTIME_ERRORS, match="paths (failed|succeeded) .*an angle past"):
+        jax.block_until_ready(jax.jit(jax.grad(heading))(eps, 9e3))

@@ -38,8 +38,12 @@ MIN_PATHS = 4
 """Fewest paths a run may have: a covariance and the standard error of its estimate need four."""
 
 
+FAILURE_CAUSES = "a non-finite state, a blow-up, an angle past its precision's resolution, or a solver error"
+"""Why a path fails (``_simulate``: ``BLOW_UP``, ``ANGLE_RESOLUTION``), in every message that counts failed paths."""
+
+
 class SimulationError(RuntimeError):
-    """Paths failed (non-finite state, a blow-up or a solver error code) and ``on_failure='raise'``."""
+    """Paths failed (:data:`FAILURE_CAUSES`) and ``on_failure='raise'``."""
 
 
 class StationaryVarianceWarning(UserWarning):
@@ -61,12 +65,12 @@ class SimulationResult(eqx.Enumeration):
         "solver='exponential', which is stable at any step."
     )
     paths_failed = (
-        "some paths failed (non-finite state, a blow-up, or solver error); try a smaller dt, a stiffer-stable "
-        "solver, or on_failure='exclude' to inspect them."
+        f"some paths failed ({FAILURE_CAUSES}); try a smaller dt, a stiffer-stable solver, float64 states, or "
+        "on_failure='exclude' to inspect them."
     )
     too_few_paths = (
-        f"fewer than {MIN_PATHS} paths succeeded; statistics and their standard errors need ≥ {MIN_PATHS}: try a "
-        "smaller dt or a stiffer-stable solver."
+        f"fewer than {MIN_PATHS} paths succeeded (the others failed on {FAILURE_CAUSES}); statistics and their "
+        f"standard errors need ≥ {MIN_PATHS}: try a smaller dt, a stiffer-stable solver or float64 states."
     )
     moments_overflow = "the moment sums overflow (statistics not finite); use float64 states (jax_enable_x64)."
 
@@ -357,7 +361,7 @@ class Ensemble(AbstractMoments):
     ``mean[i]``, ``cov[i]`` are the sample mean and (unbiased) covariance over the
     paths that did not fail, at ``ts[i]``; ``mean_se``, ``cov_se`` their
     Monte-Carlo standard errors; ``sums`` the moment sums they come from.
-    ``n_failed`` paths failed (non-finite state, a blow-up, a solver error code, or saved
+    ``n_failed`` paths failed (:data:`FAILURE_CAUSES`, or saved
     values whose fourth power overflows the precision); failed paths never enter
     a statistic.  With ``Save(paths=True)``, ``paths`` holds the per-path values
     and ``failed[p]`` marks path ``p`` (a failed path keeps its last finite

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 import xarray as xr
 
-from ._ensemble import SimulationError
+from ._ensemble import FAILURE_CAUSES, SimulationError
 from ._misc import check_key, is_concrete
 from ._options import RunOptions, run_options
 from ._simulate import MIN_PATHS, simulate
@@ -216,8 +216,8 @@ def sweep(
         where = f"sweep: at {_point_text(names, theta)}"
         if on_failure == "raise" and n_failed[p] > 0:
             raise SimulationError(
-                f"{where}: {int(n_failed[p])} of {n_paths} paths failed (non-finite state or tangent, a blow-up, or a "
-                "solver error); try a smaller dt, a stiffer-stable solver, or on_failure='exclude'."
+                f"{where}: {int(n_failed[p])} of {n_paths} paths failed ({FAILURE_CAUSES}; or a non-finite tangent); "
+                "try a smaller dt, a stiffer-stable solver, float64 states, or on_failure='exclude'."
             )
         if n_used[p] < MIN_PATHS:
             raise SimulationError(f"{where}: only {int(n_used[p])} of {n_paths} paths are usable; need ≥ {MIN_PATHS}.")

@@ -29,6 +29,7 @@ ROLES = (
     "momentum",  # p' of the Hamiltonian form (1.13)
     "velocity",  # q̇' of the Lagrangian form (1.12)
 )
+_COORDINATES = ("independent_coordinate", "dependent_coordinate")
 
 
 class StateLayout(eqx.Module):
@@ -38,6 +39,10 @@ class StateLayout(eqx.Module):
         names: one distinct name per state component.
         roles: one of :data:`ROLES` per component (``"dependent_coordinate"`` marks the ``q''`` whose statistics
             are the drift).
+        angles: the coordinates the vector fields read through periodic functions (``sin``, ``cos``).  At a
+            magnitude ``|θ|`` the precision resolves an angle to ``eps·|θ|`` only, and the rotation's gyroscopic
+            terms carry rounding of that size relative: a path fails where an angle passes
+            ``ANGLE_RESOLUTION / eps`` (8.4e3 rad in float32, 4.5e12 in float64).
 
     Examples:
         >>> import nhsde
@@ -48,10 +53,14 @@ class StateLayout(eqx.Module):
 
     names: tuple[str, ...]
     roles: tuple[str, ...]
+    angles: tuple[str, ...] = ()
 
     def __check_init__(self):
         if len(self.names) != len(self.roles):
             raise ValueError(f"StateLayout: {len(self.names)} names but {len(self.roles)} roles.")
+        for angle in self.angles:
+            if angle not in self.names or self.roles[self.names.index(angle)] not in _COORDINATES:
+                raise ValueError(f"StateLayout: angles={self.angles!r}; {angle!r} is not a coordinate of {self.names}.")
         if len(set(self.names)) != len(self.names):
             raise ValueError(f"StateLayout: duplicate state names in {self.names}.")
         for role in self.roles:

@@ -56,6 +56,7 @@ class KnifeEdge(AbstractSpecScene):
         kinetic_energy=kinetic, potential=potential, constraints=blade, dissipation=dissipation, noise_force=noise
     )
     dependent: ClassVar[tuple[str, ...]] = ("y",)
+    angles: ClassVar[tuple[str, ...]] = ("theta",)
 
     params: KnifeEdgeParameters
     route: str = eqx.field(static=True)

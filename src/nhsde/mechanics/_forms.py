@@ -157,6 +157,7 @@ class AbstractForm(eqx.Module):
         return StateLayout(
             spec.random_parameters + spec.coordinates + names,
             ("random_parameter",) * spec.k + roles + x_roles,
+            spec.angles,
         )
 
     def state(self, q, qdot, pi=None, t: ArrayLike = 0.0):

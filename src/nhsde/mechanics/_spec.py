@@ -124,6 +124,7 @@ class MechanicalSpec(eqx.Module):
     """
 
     coordinates: tuple[str, ...] = eqx.field(static=True)
+    angles: tuple[str, ...] = eqx.field(static=True)  # coordinates read through sin/cos (StateLayout.angles)
     params: AbstractParameters
     kinetic_energy: Callable | None = eqx.field(static=True)
     mass_matrix: Callable | None = eqx.field(static=True)
@@ -151,6 +152,7 @@ class MechanicalSpec(eqx.Module):
         *,
         coordinates,
         params,
+        angles=(),
         kinetic_energy=None,
         mass_matrix=None,
         potential=None,
@@ -174,6 +176,9 @@ class MechanicalSpec(eqx.Module):
                 raise ValueError(f"MechanicalSpec: {label}={names!r}; expected distinct non-empty names.")
         if not coordinates:
             raise ValueError("MechanicalSpec: coordinates=(); a system needs at least one coordinate.")
+        angles = tuple(angles)
+        if not set(angles) <= set(coordinates) or len(set(angles)) != len(angles):
+            raise ValueError(f"MechanicalSpec: angles={angles!r}; expected distinct names among {coordinates}.")
         if not isinstance(params, AbstractParameters):
             raise TypeError(
                 f"MechanicalSpec: params={type(params).__name__}; expected an AbstractParameters instance "
@@ -218,6 +223,7 @@ class MechanicalSpec(eqx.Module):
         if constraint_bias is not None and constraints is None:
             raise ValueError("MechanicalSpec: constraint_bias given without constraints.")
         self.coordinates = coordinates
+        self.angles = angles
         self.params = params
         self.kinetic_energy = kinetic_energy
         self.mass_matrix = mass_matrix

@@ -232,7 +232,11 @@ def with_shaping_filter(system, filter: AbstractShapingFilter):
         drift_fn=_FilteredDrift(drift, system.diffusion_fn, k),
         diffusion_fn=_FilteredDiffusion(k, system.state_dim),
         params=FilteredParameters(system.params, filter),
-        layout=StateLayout(tuple(filter.names) + system.layout.names, ("random_parameter",) * k + system.layout.roles),
+        layout=StateLayout(
+            tuple(filter.names) + system.layout.names,
+            ("random_parameter",) * k + system.layout.roles,
+            system.layout.angles,
+        ),
         noise_dim=filter.noise_dim,
         interpretation="ito",
         additive_noise=filter.additive_noise,

@@ -59,13 +59,14 @@ class AbstractBathScene(AbstractScene):
     positions in the state when ``drift``.
 
     A concrete one declares ``fields``: ``(model, drift) -> (velocity names, drift, diffusion, linear drift, noise
-    channels, observables)`` (from :func:`with_positions` for ``drift=True``), and ``positions``: the names and roles
-    of ``q``.
+    channels, observables)`` (from :func:`with_positions` for ``drift=True``), ``positions``: the names and roles
+    of ``q``, and ``angles``: those the fields read through ``sin``/``cos`` (:class:`~nhsde.StateLayout`).
     """
 
     fields: AbstractClassVar[dict]
     positions: AbstractClassVar[tuple[tuple[str, ...], tuple[str, ...]]]
     intensities: ClassVar[tuple[str, ...]] = ("kT",)
+    angles: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, *, model: str = "soft", drift: bool = True, **params):
         if model not in MODELS:
@@ -84,7 +85,7 @@ class AbstractBathScene(AbstractScene):
             drift_fn=drift_fn,
             diffusion_fn=diffusion_fn,
             params=self.params,
-            layout=StateLayout(names, roles),
+            layout=StateLayout(names, roles, self.angles if drift else ()),
             noise_dim=channels,
             additive_noise=True,
             linear_drift=linear,

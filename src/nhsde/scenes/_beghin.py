@@ -98,6 +98,7 @@ class BeghinPlate(AbstractSpecScene):
     Parameters: ClassVar[type[BeghinParameters]] = BeghinParameters
     coordinates: ClassVar[tuple[str, ...]] = ("alpha", "beta")
     dependent: ClassVar[tuple[str, ...]] = ("alpha",)
+    angles: ClassVar[tuple[str, ...]] = ("alpha", "beta")
 
     params: BeghinParameters
     route: str = eqx.field(static=True)

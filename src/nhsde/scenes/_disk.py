@@ -74,6 +74,7 @@ class VerticalRollingDisk(AbstractSpecScene):
         kinetic_energy=_kinetic, constraints=_rolling, dissipation=_dissipation, noise_force=_torques
     )
     dependent: ClassVar[tuple[str, ...]] = ("x", "y")
+    angles: ClassVar[tuple[str, ...]] = ("phi",)
 
     params: DiskParameters
     route: str = eqx.field(static=True)

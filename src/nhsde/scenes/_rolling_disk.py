@@ -123,6 +123,7 @@ class RollingDisk(AbstractSpecScene):
         noise_force=_torques,
     )
     dependent: ClassVar[tuple[str, ...]] = ("x", "y")
+    angles: ClassVar[tuple[str, ...]] = ("psi", "theta")
 
     params: RollingDiskParameters
     route: str = eqx.field(static=True)

@@ -130,6 +130,7 @@ class ChaplyginSleigh(AbstractScene):
             layout = StateLayout(
                 ("x", "y", "theta", "v", "omega"),
                 ("dependent_coordinate", "dependent_coordinate", "independent_coordinate", "velocity", "velocity"),
+                angles=("theta",),
             )
             drift, diffusion, linear, energy = _drift_full, _diffusion_full, _linear_full, _ENERGY_FULL
         else:

@@ -25,7 +25,9 @@ class AbstractSpecScene(AbstractScene):
 
     A concrete spec scene declares, besides ``name``, ``Parameters`` and ``params``:
 
-    - ``coordinates`` (class variable): the names of ``q``;
+    - ``coordinates`` (class variable): the names of ``q``; ``angles`` (class variable, default none): those the
+      terms read through ``sin``/``cos`` (a path fails where one passes the precision's resolution,
+      :class:`~nhsde.StateLayout`);
     - ``terms``: the :class:`~nhsde.mechanics.MechanicalSpec` functions by keyword
       (``kinetic_energy`` or ``mass_matrix``, ``potential``, ``constraints``,
       ``holonomic``, ``servo``, ``dissipation``, ``noise_force``, …), a class variable or a property;
@@ -45,6 +47,7 @@ class AbstractSpecScene(AbstractScene):
     coordinates: AbstractClassVar[tuple[str, ...]]
     terms: AbstractVar[Mapping[str, Any]]
     dependent: ClassVar[tuple[str, ...] | None] = None
+    angles: ClassVar[tuple[str, ...]] = ()
     stabilization: ClassVar[float] = 10.0
 
     def __check_init__(self):
@@ -56,8 +59,8 @@ class AbstractSpecScene(AbstractScene):
         """``(q, q̇)`` of the initial state (velocities on the constraints)."""
 
     def spec(self) -> MechanicalSpec:
-        """The mechanical specification: ``coordinates``, ``params`` and the ``terms``."""
-        return MechanicalSpec(coordinates=self.coordinates, params=self.params, **self.terms)
+        """The mechanical specification: ``coordinates``, ``angles``, ``params`` and the ``terms``."""
+        return MechanicalSpec(coordinates=self.coordinates, angles=self.angles, params=self.params, **self.terms)
 
     def form(self) -> AbstractForm:
         q, _ = self.configuration()

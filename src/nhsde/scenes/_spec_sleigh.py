@@ -60,6 +60,7 @@ class ChaplyginSleighFromSpec(AbstractSpecScene):
         kinetic_energy=_kinetic, constraints=_knife, dissipation=_dissipation, noise_force=_force_and_torque
     )
     dependent: ClassVar[tuple[str, ...]] = ("y",)
+    angles: ClassVar[tuple[str, ...]] = ("theta",)
 
     params: SleighParameters
     route: str = eqx.field(static=True)

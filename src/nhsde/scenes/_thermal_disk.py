@@ -230,6 +230,7 @@ class VerticalRollingDiskInBath(AbstractBathScene):
     Parameters: ClassVar[type[BathDiskParameters]] = BathDiskParameters
     fields: ClassVar[dict] = _FIELDS
     positions: ClassVar[tuple[tuple[str, ...], tuple[str, ...]]] = _POSITIONS
+    angles: ClassVar[tuple[str, ...]] = ("phi",)
 
     params: BathDiskParameters
     model: str = eqx.field(static=True)

@@ -208,6 +208,7 @@ class ChaplyginSleighInBath(AbstractBathScene):
     Parameters: ClassVar[type[BathSleighParameters]] = BathSleighParameters
     fields: ClassVar[dict] = _FIELDS
     positions: ClassVar[tuple[tuple[str, ...], tuple[str, ...]]] = _POSITIONS
+    angles: ClassVar[tuple[str, ...]] = ("theta",)
 
     params: BathSleighParameters
     model: str = eqx.field(static=True)

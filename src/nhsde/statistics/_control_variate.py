@@ -202,7 +202,9 @@ def linearised_system(system: StochasticSystem, *, follow: bool = True) -> Stoch
         raise TypeError(f"system={type(system).__name__}; expected a StochasticSystem (e.g. a scene's .build()).")
     ito = system.converted("ito")
     layout = StateLayout(
-        tuple(n + _REFERENCE for n in ito.layout.names) + ito.layout.names, ito.layout.roles + ito.layout.roles
+        tuple(n + _REFERENCE for n in ito.layout.names) + ito.layout.names,
+        ito.layout.roles + ito.layout.roles,
+        tuple(n + _REFERENCE for n in ito.layout.angles) + ito.layout.angles,
     )
     linear = None if ito.linear_drift is None else _BlockLinear(ito.linear_drift, follow)
     return StochasticSystem(

@@ -277,6 +277,7 @@ def fitted_system(augmented: StochasticSystem, d: int, beta) -> StochasticSystem
         layout=StateLayout(
             augmented.layout.names[:d] + tuple(f"{_CONTROL}{k}" for k in range(r)),
             augmented.layout.roles[:d] + ("independent_coordinate",) * r,
+            augmented.layout.angles,
         ),
         noise_dim=augmented.noise_dim,
         interpretation="ito",
@@ -352,7 +353,7 @@ def martingale_system(
         drift_fn=_Drift(ito.drift_fn, size),
         diffusion_fn=_Diffusion(ito.diffusion_fn, made, size),
         params=ito.params,
-        layout=StateLayout(names, roles),
+        layout=StateLayout(names, roles, ito.layout.angles),
         noise_dim=ito.noise_dim,
         interpretation="ito",
         additive_noise=False,

@@ -278,9 +278,7 @@ def moment_sensitivities(
     )
     details = ""
     if is_concrete(n_failed) and int(n_failed) > 0:
-        details = (
-            f"{int(n_failed)} of {n_paths} paths failed (a non-finite state or tangent, a blow-up, or a solver error): "
-        )
+        details = f"{int(n_failed)} of {n_paths} paths failed (or their tangents were not finite): "
     scale = scale_cause(system.params, y0) if details else ""
     moments, d_moments = check_result((moments, d_moments), result, "moment_sensitivities", details, scale)
     mean, cov, mean_se, cov_se = moments
