@@ -27,10 +27,10 @@ Every solver :func:`solver_needs` returns differentiates in forward and reverse 
 ``jax.grad``, the estimators' ``wrt``): diffrax's explicit Runge–Kutta stages run as a scan of the stage count
 (``scan_kind='bounded'``; ``'lax'`` is a while loop, forward mode only, and the default ``'checkpointed'`` reverse
 mode only), a stochastic Runge–Kutta method's as a ``lax.scan`` (``'lax'``); and a step whose result is not
-finite (or not successful), which ``simulate`` discards with its path, has tangent 0, masked on both sides of its
-linear map, so that in reverse mode the discarded path's zero cotangent meeting overflowed partial derivatives
-(``0·∞ = nan``: ``dx = a x² dt`` from ``x = 10`` overflows ``∂x₁/∂a = h x²``) is selected away before any sum over
-paths.  The step's value, and its derivative wherever it succeeds, are unchanged; it is evaluated once.
+finite (or not successful), which ``simulate`` discards with its path, is linearised at the origin instead of at
+its state, so that in reverse mode the discarded path's zero cotangent meets finite partial derivatives, not
+overflowed ones (``0·∞ = nan``: ``dx = a x² dt`` from ``x = 10`` overflows ``∂x₁/∂a = h x²``).  The step's value,
+and its derivative wherever it succeeds, are unchanged.
 """
 
 from __future__ import annotations
@@ -250,18 +250,23 @@ def _is_zero(t) -> bool:
 
 
 def _finite_step_jvp(step: Callable, primals, tangents):
-    """The step, and its tangent where its ``y1`` is finite and its result successful, else 0: such a step's value
-    is discarded (a failed path keeps its last state), and so its tangent, but in reverse mode its zero cotangent
-    still meets the step's partial derivatives, which overflow there (``0·∞ = nan``).  The step is linearised once
-    (one evaluation, as plain ``jax.jvp``) and masked on both sides of its linear map: its tangent in, so that the
-    transpose's ``nan`` is selected away per path before any sum over paths, and its tangent out."""
+    """The step, and its tangent at ``y0`` where its ``y1`` is finite and its result successful, else at the origin
+    ``y0 = 0``: such a step's value is discarded (a failed path keeps its last state), and so its tangent, but in
+    reverse mode its zero cotangent still meets the partial derivatives at the linearisation point, where at ``y0``
+    they overflow (``0·∞ = nan``), and the origin's are finite for a drift and diffusion finite there.  Evaluated twice
+    (the step, then ``jax.jvp`` at its state or the origin): ``jax.linearize`` once, masking the tangent instead, cost
+    1.3–2× in ``jacfwd`` and ``value_and_grad`` (its residuals are materialised; benchmarks/RESULTS.md)."""
     (inputs,), (dots,) = primals, tangents
-    leaves, tree = jax.tree.flatten(inputs)
+    out = step(*inputs)
+    y1, result = out[0], out[4]
+    ok = jnp.all(jnp.array([jnp.all(jnp.isfinite(a)) for a in jax.tree.leaves(y1)])) & (
+        result == dfx.RESULTS.successful
+    )
+    dynamic, hoisted = inputs
+    y0 = jax.tree.map(lambda v: jnp.where(ok, v, jnp.zeros_like(v)), dynamic[3])  # the double where's first
+    leaves, tree = jax.tree.flatten(((*dynamic[:3], y0, *dynamic[4:]), hoisted))
     dots = jax.tree.leaves(dots, is_leaf=_is_zero)
     live = [i for i, t in enumerate(dots) if not _is_zero(t) and t.dtype != jax.dtypes.float0]
-    if not live:
-        out = step(*inputs)
-        return out, jax.tree.map(_zero_tangent, out)
 
     def at(*values):
         full = list(leaves)
@@ -269,18 +274,10 @@ def _finite_step_jvp(step: Callable, primals, tangents):
             full[i] = v
         return step(*jax.tree.unflatten(tree, full))
 
-    out, linear = jax.linearize(at, *(leaves[i] for i in live))
-    y1, result = out[0], out[4]
-    ok = jnp.all(jnp.array([jnp.all(jnp.isfinite(a)) for a in jax.tree.leaves(y1)])) & (
-        result == dfx.RESULTS.successful
-    )
-    out_dot = linear(*(jnp.where(ok, dots[i], jnp.zeros_like(dots[i])) for i in live))
-    out_dot = jax.tree.map(lambda d: jnp.where(ok, d, jnp.zeros_like(d)) if _inexact(d) else d, out_dot)
+    if not live:
+        return out, jax.tree.map(_zero_tangent, out)
+    _, out_dot = jax.jvp(at, tuple(leaves[i] for i in live), tuple(dots[i] for i in live))
     return out, out_dot
-
-
-def _inexact(x) -> bool:
-    return jnp.issubdtype(jnp.result_type(x), jnp.inexact)
 
 
 _finite_step.defjvp(_finite_step_jvp, symbolic_zeros=True)
