@@ -355,3 +355,31 @@ def test_an_angle_past_its_precision_fails_its_path_plain_and_under_jit_grad():
         heading(eps, 9e3)
     with pytest.raises(RUNTIME_ERRORS, match="paths (failed|succeeded) .*an angle past"):
         jax.block_until_ready(jax.jit(jax.grad(heading))(eps, 9e3))
+
+
+def test_exponential_euler_with_more_noise_channels_than_its_rank_keeps_the_noise():
+    """The vertical disk in a bath (soft contact): six channels drive four velocities, so ``PᵀP`` of the exponential
+    solver's noise factor is singular.  Its solve gave a non-finite factor: every covariance 0, and ``grad`` nan,
+    silently.  The velocities are linear with additive noise, so the solver is exact at any step: at t = 1/4 their
+    covariance is ``∫₀ᵗ e^(As) b bᵀ e^(Aᵀs) ds`` (Simpson's rule here) within 4 standard errors, and ``grad`` equals
+    ``jacfwd``."""
+    import scipy.linalg
+
+    scene = nhsde.scenes.VerticalRollingDiskInBath(eps=1.0, kT=0.5)
+    system, y0 = scene.build(), scene.initial_state().astype(jnp.float64)
+    a = np.asarray(system.linear_drift(system.params))[4:, 4:]
+    b = np.asarray(system.diffusion_fn(0.0, y0, system.params))[4:]
+    s = np.linspace(0.0, 0.25, 1001)
+    flows = [scipy.linalg.expm(a * si) @ b for si in s]
+    weights = np.r_[1, np.tile([4, 2], 499), 4, 1] * (s[1] - s[0]) / 3
+    exact = sum(w * f @ f.T for w, f in zip(weights, flows))
+    ens = nhsde.simulate(system, y0, KEY, n_paths=16384, t1=0.25, dt=0.0625, solver="exponential")
+    z = (np.diagonal(ens.cov[-1])[4:] - np.diagonal(exact)) / np.diagonal(ens.cov_se[-1])[4:]
+    assert np.all(np.abs(z) < 4), z
+
+    def variance(eps):
+        run = system.replace_params(eps=eps)
+        return nhsde.simulate(run, y0, KEY, n_paths=64, t1=0.25, dt=0.0625, solver="exponential").cov[-1, 4, 4]
+
+    grad, forward = jax.grad(variance)(1.0), jax.jacfwd(variance)(1.0)
+    assert np.isfinite(grad) and abs(grad - forward) <= 1e-9 * abs(forward), (grad, forward)

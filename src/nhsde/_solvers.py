@@ -126,11 +126,10 @@ def _noise_factor(flow: _LinearFlow, b: Array) -> Array:
     d, m = b.shape
     sigma = (flow.gram @ (b @ b.T).reshape(-1)).reshape(d, d) / flow.h
     p = flow.h_phi @ b / flow.h
-    g = p.T @ p
-    diag = jnp.diagonal(g)
-    dead = diag <= 16 * m * jnp.finfo(wide).eps * jnp.max(diag)
-    g = g + jnp.diag(jnp.where(dead, 1.0, 0.0).astype(wide))  # a column without noise: a zero row of P⁺
-    left = jnp.linalg.solve(g, p.T)  # P⁺ = (PᵀP)⁻¹ Pᵀ
+    # P⁺ by SVD (zero singular values cut): a column without noise is a zero row of P⁺, and columns that depend on
+    # others (more channels than P's rank, as a bath's contact whose noise enters several velocities) leave PᵀP
+    # singular, where (PᵀP)⁻¹Pᵀ is not finite; its derivative is P⁺'s at constant rank
+    left = jnp.linalg.pinv(p)
     k = left @ (0.5 * (sigma + sigma.T)) @ left.T
     return p @ psd_factor(0.5 * (k + k.T))
 
