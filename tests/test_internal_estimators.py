@@ -107,23 +107,23 @@ def test_runs_of_whole_pieces_keep_the_paths_and_their_initial_states():
 
 
 def test_the_work_done_is_counted_solve_by_solve_failed_runs_included():
-    """``counted_path_steps``: every run started, its surplus paths and a run that fails included (``to_accuracy``
+    """``solved_path_steps``: every run started, its surplus paths and a run that fails included (``to_accuracy``
     counts a failed attempt's work with it, not its plan): 1000 paths are one run of 1024 paths × 8 steps; on
     Chaplygin's ball Euler at h = 1 in float32 loses 2 of 1024 paths (overflow), after its run of 4 steps."""
-    with _paths.counted_path_steps() as solved:
-        est = nhsde.statistics.multilevel_monte_carlo(
-            BALL.build(), Y0, jax.random.key(0), t1=1.0, dt=1 / 8, statistic=("mean", "x"), n_paths=(1000,)
+    before = _paths.solved_path_steps()
+    est = nhsde.statistics.multilevel_monte_carlo(
+        BALL.build(), Y0, jax.random.key(0), t1=1.0, dt=1 / 8, statistic=("mean", "x"), n_paths=(1000,)
+    )
+    assert _paths.solved_path_steps() - before == _paths.RUN_PATHS * 8 and est.cost.path_steps == 1000 * 8
+    ball = ChaplyginBall(eps=1.0, nu=2.0)
+    with pytest.raises(nhsde.SimulationError, match="2 of 1024 paths failed"):
+        nhsde.statistics.multilevel_monte_carlo(
+            ball.build(),
+            ball.initial_state().astype(jnp.float32),
+            jax.random.key(0),
+            t1=4.0,
+            dt=1.0,
+            statistic=("mean", "energy"),
+            n_paths=(1000,),
         )
-        assert solved() == _paths.RUN_PATHS * 8 and est.cost.path_steps == 1000 * 8
-        ball = ChaplyginBall(eps=1.0, nu=2.0)
-        with pytest.raises(nhsde.SimulationError, match="2 of 1024 paths failed"):
-            nhsde.statistics.multilevel_monte_carlo(
-                ball.build(),
-                ball.initial_state().astype(jnp.float32),
-                jax.random.key(0),
-                t1=4.0,
-                dt=1.0,
-                statistic=("mean", "energy"),
-                n_paths=(1000,),
-            )
-        assert solved() == _paths.RUN_PATHS * (8 + 4)
+    assert _paths.solved_path_steps() - before == _paths.RUN_PATHS * (8 + 4)

@@ -69,7 +69,7 @@ from ._estimators import (
     QuasiMonteCarlo,
     Richardson,
 )
-from ._paths import counted_path_steps
+from ._paths import solved_path_steps
 from ._pilot import Candidate, candidate
 from ._report import AccuracyAlternative, AccuracyResult
 from ._sensitivities import check_wrt
@@ -526,14 +526,15 @@ def _to_accuracy(
         reason += f", {key_of(ranked[1]) / key_of(chosen):.2g}× below the next, {ranked[1].name}"
     pilot_cost = watch.cost(pilot_work)  # everything before the run: the pilots, their pricing and timing
     run_watch = Stopwatch()
-    with counted_path_steps() as solved:
-        try:
-            estimate, bias = chosen.estimator.run(pricing, chosen)
-        except SimulationError as e:  # a rare path blew up at a step the pilot's paths survived: from half the step
-            if not retry:
-                raise
-            # this attempt's work: the pilots and the run's solves up to the one that failed
-            return from_half_step(f"{chosen.name} failed ({str(e).splitlines()[0][:120]})", pilot_work + solved())
+    solved_before = solved_path_steps()
+    try:
+        estimate, bias = chosen.estimator.run(pricing, chosen)
+    except SimulationError as e:  # a rare path blew up at a step the pilot's paths survived: from half the step
+        if not retry:
+            raise
+        # this attempt's work: the pilots and the run's solves up to the one that failed
+        solved = solved_path_steps() - solved_before
+        return from_half_step(f"{chosen.name} failed ({str(e).splitlines()[0][:120]})", pilot_work + solved)
     se = float(estimate.value(statistic)[1])
     if not se <= MAX_SE_OVER_TARGET * rmse:  # a statistic the plan did not foresee: never returned as meeting it
         failure = (

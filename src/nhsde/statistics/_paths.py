@@ -13,9 +13,8 @@ set ``simulate``'s ``covariance_variance``), never zero for a non-degenerate sam
 
 from __future__ import annotations
 
-import contextlib
-import contextvars
-from collections.abc import Callable, Iterator, Sequence
+import threading
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import jax
@@ -220,19 +219,15 @@ def runs(n_paths: int) -> list[int]:
     return [LARGE_RUN_PATHS] * large + [RUN_PATHS] * -(-rest // RUN_PATHS)
 
 
-_SOLVED = contextvars.ContextVar[list[float] | None]("nhsde_solved_path_steps", default=None)
+_SOLVED = [0]
+_SOLVED_LOCK = threading.Lock()
 
 
-@contextlib.contextmanager
-def counted_path_steps() -> Iterator[Callable[[], float]]:
-    """Within: the path-steps of every estimator solve started (whole runs, surplus paths and failed runs
-    included: the work done), read by the yielded function."""
-    counter = [0.0]
-    token = _SOLVED.set(counter)
-    try:
-        yield lambda: counter[0]
-    finally:
-        _SOLVED.reset(token)
+def solved_path_steps() -> int:
+    """The path-steps of every estimator solve started in this process so far (whole runs, surplus paths and failed
+    runs included: the work done).  A meter: the work of a span of code is the difference of two readings (solves
+    in other threads meanwhile are counted too)."""
+    return _SOLVED[0]
 
 
 def solve_paths(system: StochasticSystem, y0, key, run: RunOptions, *, first_path: int, n_paths: int) -> Values:
@@ -286,9 +281,8 @@ def _solve_runs(
                 xp = array_module(y0)
                 part = y0[done : done + keep]
                 start_states = xp.concatenate([part, xp.repeat(part[-1:], size_of_run - keep, axis=0)])
-            counter = _SOLVED.get()
-            if counter is not None:  # counted before the solve: a run that fails was done all the same
-                counter[0] += size_of_run * run.n_steps
+            with _SOLVED_LOCK:  # counted before the solve: a run that fails was done all the same
+                _SOLVED[0] += size_of_run * run.n_steps
             ens = simulate_run(
                 system,
                 start_states,
